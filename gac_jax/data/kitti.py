@@ -1,0 +1,329 @@
+"""KITTI 3D-object format: calibration, labels, result files and the folder layout.
+
+Layout of a KITTI object root (real or generated)::
+
+    ROOT/training/image_2/NNNNNN.png   left colour image
+    ROOT/training/image_3/NNNNNN.png   right colour image (optional)
+    ROOT/training/calib/NNNNNN.txt     P0..P3, R0_rect, Tr_velo_to_cam
+    ROOT/training/label_2/NNNNNN.txt   15 columns per object (DontCare included)
+    ROOT/ImageSets/{train,val,...}.txt frame ids, one per line
+
+Result files use the label format plus a 16th ``score`` column.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from gac_jax.data.files import KittiFormatError, atomic_write, read_bytes
+
+CALIB_SHAPES = {
+    "P0": (3, 4),
+    "P1": (3, 4),
+    "P2": (3, 4),
+    "P3": (3, 4),
+    "R0_rect": (3, 3),
+    "Tr_velo_to_cam": (3, 4),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """Calibration of one KITTI frame (float64). Only ``P2`` is mandatory."""
+
+    P2: np.ndarray
+    P0: np.ndarray | None = None
+    P1: np.ndarray | None = None
+    P3: np.ndarray | None = None
+    R0_rect: np.ndarray | None = None
+    Tr_velo_to_cam: np.ndarray | None = None
+
+
+def parse_calib(text: str, path: str | os.PathLike = "<calib>") -> Calibration:
+    """Parses the text of a KITTI ``calib/NNNNNN.txt`` file."""
+    values: dict[str, np.ndarray] = {}
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line:
+            continue
+        if ":" not in line:
+            raise KittiFormatError(path, f"expected 'KEY: v1 v2 ...', got {line[:40]!r}", lineno)
+        key, rest = line.split(":", 1)
+        key = key.strip()
+        if key not in CALIB_SHAPES:
+            continue  # e.g. Tr_imu_to_velo: not needed
+        shape = CALIB_SHAPES[key]
+        fields = rest.split()
+        n = shape[0] * shape[1]
+        if len(fields) != n:
+            raise KittiFormatError(path, f"{key} needs {n} numbers, found {len(fields)}", lineno)
+        try:
+            arr = np.array([float(f) for f in fields], dtype=np.float64).reshape(shape)
+        except ValueError:
+            bad = next(f for f in fields if not _is_float(f))
+            raise KittiFormatError(path, f"{key}: non-numeric value {bad!r}", lineno) from None
+        if not np.all(np.isfinite(arr)):
+            raise KittiFormatError(path, f"{key}: non-finite value", lineno)
+        values[key] = arr
+    if "P2" not in values:
+        raise KittiFormatError(path, "calibration has no P2 (the left colour camera projection)")
+    for key in ("P2", "P3"):
+        if key in values and abs(np.linalg.det(values[key][:, :3])) < 1e-12:
+            raise KittiFormatError(path, f"{key} is singular")
+    return Calibration(**values)
+
+
+def read_calib(path: str | os.PathLike) -> Calibration:
+    return parse_calib(read_bytes(path, "calibration file").decode("utf-8", "replace"), path)
+
+
+def format_calib(calib: Calibration) -> str:
+    lines = []
+    for key in ("P0", "P1", "P2", "P3", "R0_rect", "Tr_velo_to_cam"):
+        arr = getattr(calib, key)
+        if arr is not None:
+            lines.append(f"{key}: " + " ".join(f"{v:.12e}" for v in np.ravel(arr)))
+    return "\n".join(lines) + "\n"
+
+
+def write_calib(path: str | os.PathLike, calib: Calibration) -> None:
+    with atomic_write(path) as f:
+        f.write(format_calib(calib))
+
+
+def _is_float(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+@dataclasses.dataclass(frozen=True)
+class KittiObjects:
+    """Objects of one frame as a struct of arrays (N objects).
+
+    Attributes:
+      type: (N,) class names, e.g. ``"Car"``, ``"DontCare"``.
+      truncated: (N,) float in [0, 1] (-1 for DontCare / unknown).
+      occluded: (N,) int 0..3 (-1 unknown).
+      alpha: (N,) observation angle, radians.
+      bbox: (N, 4) 2D box xyxy in image pixels.
+      dimensions: (N, 3) ``(h, w, l)`` metres.
+      location: (N, 3) bottom-face centre ``(x, y, z)`` in the camera frame.
+      rotation_y: (N,) yaw about the camera y axis.
+      score: (N,) detection confidence (NaN for ground-truth labels).
+    """
+
+    type: np.ndarray
+    truncated: np.ndarray
+    occluded: np.ndarray
+    alpha: np.ndarray
+    bbox: np.ndarray
+    dimensions: np.ndarray
+    location: np.ndarray
+    rotation_y: np.ndarray
+    score: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.type.shape[0])
+
+    @classmethod
+    def empty(cls) -> KittiObjects:
+        return cls.from_arrays(type=np.zeros((0,), dtype="<U16"))
+
+    @classmethod
+    def from_arrays(cls, **fields) -> KittiObjects:
+        """Builds objects from any subset of fields; missing ones get KITTI's "unknown" values."""
+        n = len(fields["type"])
+        defaults = {
+            "truncated": np.zeros(n),
+            "occluded": np.zeros(n, dtype=np.int64),
+            "alpha": np.full(n, -10.0),
+            "bbox": np.zeros((n, 4)),
+            "dimensions": np.zeros((n, 3)),
+            "location": np.zeros((n, 3)),
+            "rotation_y": np.zeros(n),
+            "score": np.full(n, np.nan),
+        }
+        defaults.update(fields)
+        return cls(
+            type=np.asarray(defaults["type"], dtype="<U16").reshape(n),
+            truncated=np.asarray(defaults["truncated"], dtype=np.float64).reshape(n),
+            occluded=np.asarray(defaults["occluded"], dtype=np.int64).reshape(n),
+            alpha=np.asarray(defaults["alpha"], dtype=np.float64).reshape(n),
+            bbox=np.asarray(defaults["bbox"], dtype=np.float64).reshape(n, 4),
+            dimensions=np.asarray(defaults["dimensions"], dtype=np.float64).reshape(n, 3),
+            location=np.asarray(defaults["location"], dtype=np.float64).reshape(n, 3),
+            rotation_y=np.asarray(defaults["rotation_y"], dtype=np.float64).reshape(n),
+            score=np.asarray(defaults["score"], dtype=np.float64).reshape(n),
+        )
+
+    def select(self, index) -> KittiObjects:
+        """Subset by boolean mask or integer indices."""
+        return KittiObjects(**{f.name: getattr(self, f.name)[index] for f in dataclasses.fields(self)})
+
+    def replace(self, **changes) -> KittiObjects:
+        return dataclasses.replace(self, **changes)
+
+    @staticmethod
+    def concatenate(items: list[KittiObjects]) -> KittiObjects:
+        if not items:
+            return KittiObjects.empty()
+        return KittiObjects(
+            **{
+                f.name: np.concatenate([getattr(o, f.name) for o in items])
+                for f in dataclasses.fields(KittiObjects)
+            }
+        )
+
+
+_NUMERIC_FIELDS = ("truncated", "occluded", "alpha", "x1", "y1", "x2", "y2", "h", "w", "l", "x", "y")
+_NUMERIC_FIELDS = _NUMERIC_FIELDS + ("z", "rotation_y", "score")
+
+
+def parse_label(
+    text: str, path: str | os.PathLike = "<label>", with_score: bool | None = None
+) -> KittiObjects:
+    """Parses a KITTI label (15 columns) or result (16 columns, score last) file.
+
+    Args:
+      with_score: True requires 16 columns, False requires 15, None accepts
+        either (per file: all lines must agree).
+    """
+    rows: list[tuple[str, list[float]]] = []
+    ncols_seen = None
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        fields = raw.split()
+        if not fields:
+            continue
+        n = len(fields)
+        allowed = {True: (16,), False: (15,), None: (15, 16)}[with_score]
+        if n not in allowed:
+            want = " or ".join(str(a) for a in allowed)
+            raise KittiFormatError(path, f"expected {want} columns, found {n}", lineno)
+        if ncols_seen is not None and n != ncols_seen:
+            raise KittiFormatError(
+                path, f"lines have different column counts ({ncols_seen} and {n})", lineno
+            )
+        ncols_seen = n
+        values = []
+        for name, f in zip(_NUMERIC_FIELDS, fields[1:], strict=False):
+            try:
+                v = float(f)
+            except ValueError:
+                raise KittiFormatError(path, f"field '{name}': non-numeric value {f!r}", lineno) from None
+            if math.isnan(v) or math.isinf(v):
+                raise KittiFormatError(path, f"field '{name}': value {f!r} is not finite", lineno)
+            values.append(v)
+        if fields[0] != "DontCare":
+            h, w, l = values[7:10]
+            if min(h, w, l) < 0:
+                raise KittiFormatError(path, f"negative 3D size (h, w, l) = ({h}, {w}, {l})", lineno)
+        rows.append((fields[0], values))
+    if not rows:
+        return KittiObjects.empty()
+    types = [r[0] for r in rows]
+    arr = np.array([r[1] for r in rows], dtype=np.float64)
+    score = arr[:, 14] if arr.shape[1] == 15 else np.full(len(rows), np.nan)
+    return KittiObjects.from_arrays(
+        type=types,
+        truncated=arr[:, 0],
+        occluded=arr[:, 1].astype(np.int64),
+        alpha=arr[:, 2],
+        bbox=arr[:, 3:7],
+        dimensions=arr[:, 7:10],
+        location=arr[:, 10:13],
+        rotation_y=arr[:, 13],
+        score=score,
+    )
+
+
+def read_label(path: str | os.PathLike, with_score: bool | None = False) -> KittiObjects:
+    """Reads ``label_2/NNNNNN.txt`` (``with_score=False``) or a result file (``True``)."""
+    return parse_label(read_bytes(path, "label file").decode("utf-8", "replace"), path, with_score)
+
+
+def format_label(objects: KittiObjects, with_score: bool | None = None) -> str:
+    """KITTI text for ``objects``; the score column is written when ``with_score`` (default: if any score is set)."""
+    if with_score is None:
+        with_score = bool(len(objects)) and not np.all(np.isnan(objects.score))
+    lines = []
+    for i in range(len(objects)):
+        x1, y1, x2, y2 = objects.bbox[i]
+        h, w, l = objects.dimensions[i]
+        x, y, z = objects.location[i]
+        line = (
+            f"{objects.type[i]} {objects.truncated[i]:.2f} {int(objects.occluded[i])} "
+            f"{objects.alpha[i]:.6f} {x1:.2f} {y1:.2f} {x2:.2f} {y2:.2f} "
+            f"{h:.6f} {w:.6f} {l:.6f} {x:.6f} {y:.6f} {z:.6f} {objects.rotation_y[i]:.6f}"
+        )
+        if with_score:
+            line += f" {objects.score[i]:.6f}"
+        lines.append(line)
+    return "".join(line + "\n" for line in lines)
+
+
+def write_label(path: str | os.PathLike, objects: KittiObjects, with_score: bool | None = None) -> None:
+    """Atomically writes a label or result file."""
+    with atomic_write(path) as f:
+        f.write(format_label(objects, with_score))
+
+
+def read_split(path: str | os.PathLike) -> list[str]:
+    """Reads an ``ImageSets/*.txt`` file: one frame id per line (blank lines ignored)."""
+    ids = []
+    for lineno, raw in enumerate(read_bytes(path, "split file").decode().splitlines(), start=1):
+        s = raw.strip()
+        if not s:
+            continue
+        if not s.isdigit():
+            raise KittiFormatError(path, f"frame id must be digits, got {s!r}", lineno)
+        ids.append(s)
+    return ids
+
+
+def write_split(path: str | os.PathLike, ids: list[str]) -> None:
+    with atomic_write(path) as f:
+        f.write("".join(f"{i}\n" for i in ids))
+
+
+@dataclasses.dataclass(frozen=True)
+class KittiObjectLayout:
+    """Paths of a KITTI object root. ``root/training`` (or ``root/testing``) holds the frames."""
+
+    root: Path
+    subset: str = "training"
+
+    def __post_init__(self):
+        object.__setattr__(self, "root", Path(self.root))
+
+    @property
+    def frames_dir(self) -> Path:
+        return self.root / self.subset
+
+    def image(self, frame_id: str, camera: int = 2) -> Path:
+        return self.frames_dir / f"image_{camera}" / f"{frame_id}.png"
+
+    def calib(self, frame_id: str) -> Path:
+        return self.frames_dir / "calib" / f"{frame_id}.txt"
+
+    def label(self, frame_id: str) -> Path:
+        return self.frames_dir / "label_2" / f"{frame_id}.txt"
+
+    def split_file(self, split: str) -> Path:
+        return self.root / "ImageSets" / f"{split}.txt"
+
+    def frame_ids(self, split: str | None = None) -> list[str]:
+        """Ids of a split (``ImageSets/<split>.txt``), or every calib file when ``split`` is None."""
+        if split is not None:
+            return read_split(self.split_file(split))
+        calib_dir = self.frames_dir / "calib"
+        if not calib_dir.is_dir():
+            raise KittiFormatError(calib_dir, "calibration folder not found")
+        return sorted(p.stem for p in calib_dir.glob("*.txt"))
