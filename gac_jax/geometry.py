@@ -33,7 +33,7 @@ def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
 
 
 def camera_center(P: np.ndarray) -> np.ndarray:
-    """Optical centre ``C`` (3,) of a 3x4 projection ``P`` in the reference frame (``P @ [C,1] = 0``)."""
+    """Optical centre ``C`` (3,) of a 3x4 projection ``P`` (``P @ [C, 1] = 0``)."""
     P = np.asarray(P, dtype=np.float64)
     return -np.linalg.solve(P[:, :3], P[:, 3])
 
@@ -73,12 +73,18 @@ def rotation_y_matrix(ry: np.ndarray) -> np.ndarray:
     c, s = np.cos(ry), np.sin(ry)
     zeros, ones = np.zeros_like(ry), np.ones_like(ry)
     return np.stack(
-        [np.stack([c, zeros, s], -1), np.stack([zeros, ones, zeros], -1), np.stack([-s, zeros, c], -1)],
+        [
+            np.stack([c, zeros, s], -1),
+            np.stack([zeros, ones, zeros], -1),
+            np.stack([-s, zeros, c], -1),
+        ],
         axis=-2,
     )
 
 
-def box3d_corners(location: np.ndarray, dimensions: np.ndarray, rotation_y: np.ndarray) -> np.ndarray:
+def box3d_corners(
+    location: np.ndarray, dimensions: np.ndarray, rotation_y: np.ndarray
+) -> np.ndarray:
     """Corners of KITTI 3D boxes in the camera frame.
 
     Args:
@@ -204,7 +210,7 @@ def ground_disparity_prior(
 def ground_depth_map(
     image_size: tuple[int, int], P: np.ndarray, camera_height: float = 1.65
 ) -> np.ndarray:
-    """(H, W) ground-plane depth for a camera ``camera_height`` above a level road (inf above the horizon)."""
+    """(H, W) depth of a level road ``camera_height`` below the camera (inf above the horizon)."""
     height, width = image_size
     z = ground_depth(np.arange(height, dtype=np.float64), P, camera_height)
     return np.broadcast_to(z[:, None], (height, width)).copy()

@@ -70,7 +70,9 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     return decode_image(read_bytes(path, "image"), path)
 
 
-def encode_png(image: np.ndarray, path: str | os.PathLike = "<array>", compression: int = 1) -> bytes:
+def encode_png(
+    image: np.ndarray, path: str | os.PathLike = "<array>", compression: int = 1
+) -> bytes:
     """Encodes an (H, W, 3) uint8 RGB or (H, W) uint8/uint16 array as PNG bytes."""
     arr = np.asarray(image)
     if arr.ndim == 3:
@@ -99,12 +101,12 @@ def decode_depth_png(data: bytes, path: str | os.PathLike = "<bytes>") -> np.nda
 
 
 def read_depth_png(path: str | os.PathLike) -> np.ndarray:
-    """Reads a KITTI-depth PNG: depth in metres = value / 256, 0 = invalid. Returns (H, W) float32."""
+    """Reads a KITTI-depth PNG: metres = value / 256, 0 = invalid. Returns (H, W) float32."""
     return decode_depth_png(read_bytes(path, "depth PNG"), path)
 
 
 def depth_to_uint16(depth: np.ndarray) -> np.ndarray:
-    """Metres -> KITTI-depth uint16 (value = round(depth * 256), 0 = invalid, saturating at 255.99 m)."""
+    """Metres -> KITTI-depth uint16 (round(depth * 256), 0 = invalid, saturates at 256 m)."""
     d = np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     return np.clip(np.round(d * 256.0), 0, 65535).astype(np.uint16)
 

@@ -166,7 +166,9 @@ class KittiObjects:
 
     def select(self, index) -> KittiObjects:
         """Subset by boolean mask or integer indices."""
-        return KittiObjects(**{f.name: getattr(self, f.name)[index] for f in dataclasses.fields(self)})
+        return KittiObjects(
+            **{f.name: getattr(self, f.name)[index] for f in dataclasses.fields(self)}
+        )
 
     def replace(self, **changes) -> KittiObjects:
         return dataclasses.replace(self, **changes)
@@ -183,7 +185,20 @@ class KittiObjects:
         )
 
 
-_NUMERIC_FIELDS = ("truncated", "occluded", "alpha", "x1", "y1", "x2", "y2", "h", "w", "l", "x", "y")
+_NUMERIC_FIELDS = (
+    "truncated",
+    "occluded",
+    "alpha",
+    "x1",
+    "y1",
+    "x2",
+    "y2",
+    "h",
+    "w",
+    "l",
+    "x",
+    "y",
+)
 _NUMERIC_FIELDS = _NUMERIC_FIELDS + ("z", "rotation_y", "score")
 
 
@@ -217,14 +232,18 @@ def parse_label(
             try:
                 v = float(f)
             except ValueError:
-                raise KittiFormatError(path, f"field '{name}': non-numeric value {f!r}", lineno) from None
+                raise KittiFormatError(
+                    path, f"field '{name}': non-numeric value {f!r}", lineno
+                ) from None
             if math.isnan(v) or math.isinf(v):
                 raise KittiFormatError(path, f"field '{name}': value {f!r} is not finite", lineno)
             values.append(v)
         if fields[0] != "DontCare":
             h, w, l = values[7:10]
             if min(h, w, l) < 0:
-                raise KittiFormatError(path, f"negative 3D size (h, w, l) = ({h}, {w}, {l})", lineno)
+                raise KittiFormatError(
+                    path, f"negative 3D size (h, w, l) = ({h}, {w}, {l})", lineno
+                )
         rows.append((fields[0], values))
     if not rows:
         return KittiObjects.empty()
@@ -250,7 +269,7 @@ def read_label(path: str | os.PathLike, with_score: bool | None = False) -> Kitt
 
 
 def format_label(objects: KittiObjects, with_score: bool | None = None) -> str:
-    """KITTI text for ``objects``; the score column is written when ``with_score`` (default: if any score is set)."""
+    """KITTI text for ``objects``; scores are written if ``with_score`` (default: if any is set)."""
     if with_score is None:
         with_score = bool(len(objects)) and not np.all(np.isnan(objects.score))
     lines = []
@@ -269,7 +288,9 @@ def format_label(objects: KittiObjects, with_score: bool | None = None) -> str:
     return "".join(line + "\n" for line in lines)
 
 
-def write_label(path: str | os.PathLike, objects: KittiObjects, with_score: bool | None = None) -> None:
+def write_label(
+    path: str | os.PathLike, objects: KittiObjects, with_score: bool | None = None
+) -> None:
     """Atomically writes a label or result file."""
     with atomic_write(path) as f:
         f.write(format_label(objects, with_score))
@@ -320,7 +341,7 @@ class KittiObjectLayout:
         return self.root / "ImageSets" / f"{split}.txt"
 
     def frame_ids(self, split: str | None = None) -> list[str]:
-        """Ids of a split (``ImageSets/<split>.txt``), or every calib file when ``split`` is None."""
+        """Ids listed in ``ImageSets/<split>.txt``, or of every calib file if ``split`` is None."""
         if split is not None:
             return read_split(self.split_file(split))
         calib_dir = self.frames_dir / "calib"

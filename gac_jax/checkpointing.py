@@ -1,0 +1,80 @@
+"""Orbax checkpoints in ``WORKDIR/checkpoints``: keep the last N, resume from the latest.
+
+Each checkpoint holds the train state pytree (``state``) and a small JSON
+document (``meta``: step, task, config digest ...). Saving is collective: in a
+multi-process run every process calls :meth:`Checkpoints.save` and orbax
+writes one copy. Restoring uses the *current* shardings of an abstract state,
+so a checkpoint written by N processes can be restored by M.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import jax
+import orbax.checkpoint as ocp
+
+
+class Checkpoints:
+    def __init__(self, workdir: str | os.PathLike, max_to_keep: int = 3):
+        self.directory = Path(workdir).resolve() / "checkpoints"
+        options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True)
+        self._manager = ocp.CheckpointManager(self.directory, options=options)
+
+    def latest_step(self) -> int | None:
+        return self._manager.latest_step()
+
+    def all_steps(self) -> list[int]:
+        return list(self._manager.all_steps())
+
+    def save(self, step: int, state: Any, meta: dict | None = None, wait: bool = True) -> None:
+        args = ocp.args.Composite(
+            state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(dict(meta or {}, step=step))
+        )
+        self._manager.save(step, args=args, force=True)
+        if wait:
+            self._manager.wait_until_finished()
+
+    def restore(self, abstract_state: Any, step: int | None = None) -> tuple[Any, dict]:
+        """Restores ``step`` (default: latest) into the shardings of ``abstract_state``."""
+        step = self.latest_step() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"no checkpoint found in {self.directory}")
+        if step not in self.all_steps():
+            raise FileNotFoundError(
+                f"checkpoint step {step} not found in {self.directory} (have {self.all_steps()})"
+            )
+        target = jax.tree.map(_abstract, abstract_state)
+        restored = self._manager.restore(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardRestore(target), meta=ocp.args.JsonRestore()
+            ),
+        )
+        return restored.state, dict(restored.meta)
+
+    def restore_meta(self, step: int | None = None) -> dict:
+        step = self.latest_step() if step is None else step
+        restored = self._manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
+        return dict(restored.meta)
+
+    def wait(self) -> None:
+        self._manager.wait_until_finished()
+
+    def close(self) -> None:
+        self._manager.close()
+
+    def __enter__(self) -> Checkpoints:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _abstract(x):
+    if isinstance(x, jax.ShapeDtypeStruct):
+        return x
+    sharding = getattr(x, "sharding", None)
+    return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)
