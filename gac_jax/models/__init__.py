@@ -1,0 +1,8 @@
+"""Flax linen models of GAC (NHWC; modules return dicts of named outputs).
+
+* :mod:`gac_jax.models.resnet` - torchvision-layout ResNet-18/34/50/101 trunks.
+* :mod:`gac_jax.models.ground_aware_conv` - the ground-aware convolution and its geometry.
+* :mod:`gac_jax.models.detection_head` - the GroundAwareYolo3D classification/regression head.
+* :mod:`gac_jax.models.detector` - backbone + head, the monocular 3D detector.
+* :mod:`gac_jax.models.naming` - PyTorch state-dict keys -> Flax variables (weight import).
+"""

@@ -1,0 +1,177 @@
+"""The GroundAwareYolo3D detection head: classification and regression branches, NHWC.
+
+On backbone features F (B,Hf,Wf,C) (ResNet-101 layer3: C = 1024, stride 16):
+
+* classification: [conv3x3 -> cls_features, Dropout2d(p), ReLU] x 2 -> conv3x3 to A*(K+1)
+  (weight and bias zero-initialised, so every probability starts at 0.5; no prior bias);
+* regression: block -> [conv3x3 -> reg_features, BatchNorm, ReLU] x 2 -> conv3x3 to A*12
+  (zero-initialised, so every anchor starts at its prior). ``block`` is
+
+  - ``'gac'``: :class:`GroundAwareConv` (the paper's model);
+  - ``'conv'``: conv3x3 C->C + ReLU (the paper's ablation row "w Conv": GAC substituted by a
+    basic convolution);
+  - ``'disparity_conv'``: conv3x3 over [disparity prior ‖ F] (C+1 -> C) + ReLU (the ablation
+    row "w DisparityConv": convolution with the depth prior as an extra feature map).
+
+Output layout: the NHWC conv output (B,Hf,Wf,A*D) reshapes to (B, Hf*Wf*A, D), anchor index
+``(row*Wf + col)*A + a`` and PyTorch channel ``k = a*D + d`` -> anchor ``a``, component ``d``
+(the reference permutes to NHWC before the same reshape, so converted weights line up).
+Classification components: ``[class_0 .. class_{K-1}, alpha_sign]``; regression components
+``REGRESSION_COMPONENTS``.
+
+Flax names (see :mod:`gac_jax.models.naming` for the reference-key table): ``cls_conv1``,
+``cls_conv2``, ``cls_out``, ``gac`` (or ``plain_conv`` / ``disparity_conv``), ``reg_conv1``,
+``reg_bn1``, ``reg_conv2``, ``reg_bn2``, ``reg_out``. Layers the paper does not pin use
+PyTorch's default initialisation.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import linen as nn
+
+from gac_jax.models.ground_aware_conv import (
+    DEFAULT_BASELINE,
+    DEFAULT_CAMERA_HEIGHT,
+    DEFAULT_OBJECT_HEIGHT,
+    GroundAwareConv,
+    disparity_prior,
+)
+from gac_jax.models.initializers import torch_conv_bias_init, torch_conv_kernel_init
+
+REGRESSION_COMPONENTS = (
+    "dx",
+    "dy",
+    "dw",
+    "dh",
+    "cdx",
+    "cdy",
+    "z",
+    "sin2a",
+    "cos2a",
+    "w3d",
+    "h3d",
+    "l3d",
+)
+NUM_REGRESSION = len(REGRESSION_COMPONENTS)
+REGRESSION_BLOCKS = ("gac", "conv", "disparity_conv")
+
+
+class DetectionHead(nn.Module):
+    """Anchor-based mono-3D head of GAC (reference ``GroundAwareHead``).
+
+    Attributes:
+      num_classes: K (1 for Car-only).
+      num_anchors: A anchors per feature cell (32 in the paper configuration).
+      cls_features / reg_features: hidden widths of the two branches (512 / 1024).
+      dropout_rate: channel-wise (Dropout2d) rate in the classification branch (0.3).
+      regression_block: ``'gac'``, ``'conv'`` or ``'disparity_conv'`` (see module docstring).
+      stride: feature stride w.r.t. the input image (16), used to scale ``P2``.
+      baseline, camera_height, object_height, offset_formula, offset_scale,
+        offset_grad_scale: passed to :class:`GroundAwareConv`.
+      dtype / param_dtype: computation / parameter dtypes.
+
+    ``__call__(features (B,Hf,Wf,C), P2 (B,3,4) in input-image pixels, train)`` returns
+    ``{'cls_logits': (B,N,K), 'sign_logits': (B,N), 'reg': (B,N,12)}`` with N = Hf*Wf*A,
+    plus ``'gac_offsets'`` (B,Hf,Wf) (rows, see :class:`GroundAwareConv`) when
+    ``regression_block == 'gac'``. ``train=True`` needs a ``'dropout'`` rng and
+    ``mutable=['batch_stats']``.
+    """
+
+    num_classes: int = 1
+    num_anchors: int = 32
+    cls_features: int = 512
+    reg_features: int = 1024
+    dropout_rate: float = 0.3
+    regression_block: str = "gac"
+    stride: float = 16
+    baseline: float = DEFAULT_BASELINE
+    camera_height: float = DEFAULT_CAMERA_HEIGHT
+    object_height: float = DEFAULT_OBJECT_HEIGHT
+    offset_formula: str = "paper"
+    offset_scale: float = 0.1
+    offset_grad_scale: float = 0.05
+    dtype: Any = jnp.float32
+    param_dtype: Any = jnp.float32
+
+    def _conv(self, features: int, in_features: int, name: str, zero: bool = False) -> nn.Conv:
+        fan_in = 9 * in_features
+        return nn.Conv(
+            features,
+            (3, 3),
+            padding=((1, 1), (1, 1)),
+            kernel_init=nn.initializers.zeros if zero else torch_conv_kernel_init,
+            bias_init=nn.initializers.zeros if zero else torch_conv_bias_init(fan_in),
+            dtype=self.dtype,
+            param_dtype=self.param_dtype,
+            name=name,
+        )
+
+    def _batch_norm(self, train: bool, name: str) -> nn.BatchNorm:
+        return nn.BatchNorm(
+            use_running_average=not train,
+            momentum=0.9,
+            epsilon=1e-5,
+            dtype=self.dtype,
+            param_dtype=self.param_dtype,
+            name=name,
+        )
+
+    @nn.compact
+    def __call__(self, features: jax.Array, P2: jax.Array, train: bool) -> dict[str, jax.Array]:
+        if self.regression_block not in REGRESSION_BLOCKS:
+            block = self.regression_block
+            raise ValueError(f"regression_block must be one of {REGRESSION_BLOCKS}, got {block!r}")
+        if features.ndim != 4:
+            raise ValueError(f"expected NHWC features (B,H,W,C), got shape {features.shape}")
+        B, H, W, C = features.shape
+        if P2.shape != (B, 3, 4):
+            raise ValueError(f"P2 must have shape (B,3,4) = {(B, 3, 4)}, got {P2.shape}")
+        A, K = self.num_anchors, self.num_classes
+        x = features.astype(self.dtype)
+        outputs: dict[str, jax.Array] = {}
+
+        # Classification branch (Dropout2d = dropout broadcast over H and W).
+        c = x
+        for i, in_features in enumerate((C, self.cls_features), start=1):
+            c = self._conv(self.cls_features, in_features, f"cls_conv{i}")(c)
+            c = nn.Dropout(self.dropout_rate, broadcast_dims=(1, 2))(c, deterministic=not train)
+            c = nn.relu(c)
+        c = self._conv(A * (K + 1), self.cls_features, "cls_out", zero=True)(c)
+        c = c.reshape(B, H * W * A, K + 1).astype(jnp.float32)
+        outputs["cls_logits"] = c[..., :K]
+        outputs["sign_logits"] = c[..., K]
+
+        # Regression branch.
+        if self.regression_block == "gac":
+            gac = GroundAwareConv(
+                stride=self.stride,
+                baseline=self.baseline,
+                camera_height=self.camera_height,
+                object_height=self.object_height,
+                offset_formula=self.offset_formula,
+                offset_scale=self.offset_scale,
+                offset_grad_scale=self.offset_grad_scale,
+                dtype=self.dtype,
+                param_dtype=self.param_dtype,
+                name="gac",
+            )(x, P2)
+            r = gac["features"]
+            outputs["gac_offsets"] = gac["offset_rows"]
+        elif self.regression_block == "conv":
+            r = nn.relu(self._conv(C, C, "plain_conv")(x))
+        else:
+            P2 = jnp.asarray(P2, jnp.float32)
+            disp = disparity_prior(H, P2, self.stride, self.baseline, self.camera_height)
+            disp_map = jnp.broadcast_to(disp[:, :, None, None], (B, H, W, 1)).astype(x.dtype)
+            r = jnp.concatenate([disp_map, x], axis=-1)
+            r = nn.relu(self._conv(C, C + 1, "disparity_conv")(r))
+        for i, in_features in enumerate((C, self.reg_features), start=1):
+            r = self._conv(self.reg_features, in_features, f"reg_conv{i}")(r)
+            r = nn.relu(self._batch_norm(train, f"reg_bn{i}")(r))
+        r = self._conv(A * NUM_REGRESSION, self.reg_features, "reg_out", zero=True)(r)
+        outputs["reg"] = r.reshape(B, H * W * A, NUM_REGRESSION).astype(jnp.float32)
+        return outputs

@@ -1,0 +1,249 @@
+"""Ground-aware convolution (GAC, paper Sec. "Ground-Aware Convolution Module"), NHWC.
+
+Each feature pixel, treated as the centre of an object resting on the ground, looks *down*
+to where that object would touch the road and gathers features there together with a
+ground-plane depth prior. Pure helpers (all in feature-map pixel units):
+
+* :func:`feature_projection` - ``P`` of the input image -> ``P`` of a stride-``s`` feature map.
+* :func:`disparity_prior` - per-row virtual-stereo disparity of the ground plane.
+* :func:`base_offset` - per-row geometric offset (rows) from an object centre to its
+  ground contact point.
+* :func:`vertical_gather` - linear interpolation of a feature map along its height axis.
+
+Coordinates: feature row ``v`` (0 at the top, down positive) of a feature map whose
+projection is ``P_f`` = ``P`` with rows 0 and 1 divided by the stride (what the reference
+does; it treats feature pixel ``v`` as input pixel ``stride * v``). ``fy = P_f[1,1]``,
+``cy = P_f[1,2]``, ``Ty = P_f[1,3]``. ``P`` is per image, (B,3,4), in pixels of the network
+input: pass the calibration *after* crop/resize/flip.
+
+Sampling convention (equal to the reference's ``grid_sample(..., align_corners=True,
+padding_mode='border')`` with unchanged x): the reference adds ``base_rows / (H/2)`` and the
+learned ``d`` to the normalised row coordinate, and normalised units are ``(H-1)/2`` rows, so
+pixel ``(v, u)`` samples row::
+
+    v + offset_rows,   offset_rows = (base_rows(v) / (H/2) + d[v, u]) * (H - 1) / 2
+
+clamped to ``[0, H-1]``; i.e. the geometric offset is applied scaled by ``(H-1)/H`` and the
+learned residual ``d`` (``|d| < 0.1``, normalised) spans at most ``0.05 (H-1)`` rows.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import linen as nn
+
+from gac_jax.models.initializers import torch_conv_bias_init, torch_conv_kernel_init
+
+OFFSET_FORMULAS = ("paper", "reference", "reference_v1")
+DEFAULT_BASELINE = 0.54  # m, virtual stereo baseline (KITTI-like)
+DEFAULT_CAMERA_HEIGHT = 1.65  # m, camera elevation above the ground ("EL")
+DEFAULT_OBJECT_HEIGHT = 1.535  # m, mean object (car) height ("h_mean")
+
+
+def _float_array(x) -> jax.Array:
+    x = jnp.asarray(x)
+    return x.astype(jnp.result_type(x.dtype, jnp.float32))
+
+
+def feature_projection(P: jax.Array, stride: float) -> jax.Array:
+    """Projection of a stride-``stride`` feature map: rows 0 and 1 of ``P`` divided by stride.
+
+    Args:
+      P: (..., 3, 4) projection matrices in input-image pixels.
+    Returns:
+      (..., 3, 4) projection in feature-map pixels.
+    """
+    P = _float_array(P)
+    if P.shape[-2:] != (3, 4):
+        raise ValueError(f"P must have shape (..., 3, 4), got {P.shape}")
+    scale = jnp.asarray([1.0 / stride, 1.0 / stride, 1.0], P.dtype)
+    return P * scale[:, None]
+
+
+def disparity_prior(
+    height: int,
+    P: jax.Array,
+    stride: float,
+    baseline: float = DEFAULT_BASELINE,
+    camera_height: float = DEFAULT_CAMERA_HEIGHT,
+) -> jax.Array:
+    """Virtual disparity (feature pixels) of the ground plane at every feature row.
+
+    ``disp(v) = ReLU(fy * B * (v - cy) / (|fy * EL + Ty| + 1e-10))`` with ``fy, cy, Ty`` of
+    :func:`feature_projection` ``(P, stride)``: the disparity a stereo pair of baseline ``B``
+    would see for a ground point (``y = EL`` below the camera) imaged at row ``v``; 0 at and
+    above the horizon.
+
+    Args:
+      height: number of feature rows H.
+      P: (..., 3, 4) projection of the network input (input-image pixels).
+      stride: feature stride w.r.t. the input (16 for the detector).
+    Returns:
+      (..., H) disparity per row (shared by all columns).
+    """
+    Pf = feature_projection(P, stride)
+    fy, cy, ty = Pf[..., 1, 1], Pf[..., 1, 2], Pf[..., 1, 3]
+    v = jnp.arange(height, dtype=Pf.dtype)
+    num = fy[..., None] * baseline * (v - cy[..., None])
+    den = jnp.abs(fy * camera_height + ty)[..., None] + 1e-10
+    return jax.nn.relu(num / den)
+
+
+def base_offset(
+    height: int,
+    P: jax.Array,
+    stride: float,
+    object_height: float = DEFAULT_OBJECT_HEIGHT,
+    camera_height: float = DEFAULT_CAMERA_HEIGHT,
+    offset_formula: str = "paper",
+) -> jax.Array:
+    """Rows from an object centre at feature row ``v`` down to its ground contact point.
+
+    An object of height ``h`` standing on the ground (camera ``EL`` above it) has its centre
+    ``EL - h/2`` and its bottom ``EL`` below the camera, so at depth ``z`` the two project
+    ``fy * (h/2) / z`` rows apart, with ``z = fy * (EL - h/2) / (v - cy)``:
+
+    * ``'paper'``: ``delta_0 = h / (2 EL - h) * (v - cy)`` (the paper's formula);
+    * ``'reference'``: ``h (v - cy) / (2 (EL - h/2))``, the reference code after its fix
+      (issue #4) - algebraically identical to ``'paper'`` (≈ 0.870 (v - cy));
+    * ``'reference_v1'``: ``h (v - cy) / 2 * (EL - h/2)``, the missing-parentheses version of
+      release 1.0 (≈ 0.677 (v - cy)), which the released weights were most likely trained with.
+
+    A ReLU (as in the reference) zeroes the offset above the horizon.
+
+    Args:
+      height: number of feature rows H.
+      P: (..., 3, 4) projection of the network input (input-image pixels).
+      stride: feature stride.
+    Returns:
+      (..., H) offset in feature rows (non-negative; down is positive).
+    """
+    if offset_formula not in OFFSET_FORMULAS:
+        raise ValueError(f"offset_formula must be one of {OFFSET_FORMULAS}, got {offset_formula!r}")
+    Pf = feature_projection(P, stride)
+    cy = Pf[..., 1, 2]
+    v = jnp.arange(height, dtype=Pf.dtype)
+    dv = v - cy[..., None]
+    h, el = object_height, camera_height
+    if offset_formula == "paper":
+        offset = h / (2.0 * el - h) * dv
+    elif offset_formula == "reference":
+        offset = h * dv / (2.0 * (el - h / 2.0))
+    else:  # reference_v1: operator precedence as released
+        offset = h * dv / 2.0 * (el - h / 2.0)
+    return jax.nn.relu(offset)
+
+
+def vertical_gather(features: jax.Array, rows: jax.Array) -> jax.Array:
+    """Linearly interpolates ``features`` along the height axis at fractional ``rows``.
+
+    ``out[b, v, u, c] = (1 - w) * features[b, r0, u, c] + w * features[b, r0 + 1, u, c]`` with
+    ``r = clip(rows[b, v, u], 0, H - 1)``, ``r0 = min(floor(r), H - 2)``, ``w = r - r0``:
+    border padding, like ``grid_sample(padding_mode='border', align_corners=True)`` when the
+    columns are unchanged. Differentiable w.r.t. ``features`` and, through ``w``, w.r.t.
+    ``rows`` (gradient ``features[r0 + 1] - features[r0]`` inside ``[0, H-1]``, 0 outside).
+
+    Args:
+      features: (B, H, W, C).
+      rows: (B, H, W) float row coordinates (any range; clamped).
+    Returns:
+      (B, H, W, C) in the dtype of ``features``.
+    """
+    if features.ndim != 4 or rows.shape != features.shape[:3]:
+        raise ValueError(
+            f"expected features (B,H,W,C) and rows (B,H,W), got {features.shape} and {rows.shape}"
+        )
+    H = features.shape[1]
+    rows = jnp.clip(rows, 0.0, H - 1.0)
+    r0 = jnp.clip(jnp.floor(rows), 0.0, max(H - 2, 0))
+    w = (rows - r0)[..., None].astype(features.dtype)
+    i0 = r0.astype(jnp.int32)[..., None]
+    i1 = jnp.minimum(i0 + 1, H - 1)
+    f0 = jnp.take_along_axis(features, i0, axis=1)
+    f1 = jnp.take_along_axis(features, i1, axis=1)
+    return (1 - w) * f0 + w * f1
+
+
+class GroundAwareConv(nn.Module):
+    """The GAC module (reference ``LookGround``): C channels in, C channels out.
+
+    Steps, for features ``x`` (B,H,W,C) and the input-image projection ``P`` (B,3,4):
+
+    1. ``d0 = tanh(offset_conv(x))`` (conv 3x3 C->1), gradient-scaled as
+       ``offset_grad_scale * d0 + (1 - offset_grad_scale) * stop_gradient(d0)`` (the forward
+       value is unchanged, its gradient is scaled by 0.05), then ``d = offset_scale * d0``
+       (normalised units, see the module docstring).
+    2. ``G = [disparity_prior ‖ x]`` (C+1 channels; the prior is channel 0).
+    3. ``S = vertical_gather(G, v + offset_rows)`` with
+       ``offset_rows = (base_offset / (H/2) + d) * (H-1)/2``.
+    4. ``out = ReLU(x + alpha * extract(S))``, ``extract`` = conv 1x1 (C+1)->C, ``alpha`` a
+       learned scalar initialised to 0, so the module is the identity at init for ``x >= 0``.
+
+    Returns ``{'features': (B,H,W,C), 'offset_rows': (B,H,W) rows from each pixel to its
+    sample point (before clamping; the paper's Fig. 7 green points are at row
+    ``v + offset_rows``), 'sample_rows': (B,H,W) clamped rows actually sampled}``.
+    """
+
+    stride: float = 16
+    baseline: float = DEFAULT_BASELINE
+    camera_height: float = DEFAULT_CAMERA_HEIGHT
+    object_height: float = DEFAULT_OBJECT_HEIGHT
+    offset_formula: str = "paper"
+    offset_scale: float = 0.1
+    offset_grad_scale: float = 0.05
+    dtype: Any = jnp.float32
+    param_dtype: Any = jnp.float32
+
+    @nn.compact
+    def __call__(self, x: jax.Array, P: jax.Array) -> dict[str, jax.Array]:
+        if x.ndim != 4:
+            raise ValueError(f"expected NHWC features (B,H,W,C), got shape {x.shape}")
+        B, H, W, C = x.shape
+        if P.shape != (B, 3, 4):
+            raise ValueError(f"P must have shape (B,3,4) = {(B, 3, 4)}, got {P.shape}")
+        x = x.astype(self.dtype)
+
+        d0 = nn.Conv(
+            1,
+            (3, 3),
+            padding=((1, 1), (1, 1)),
+            kernel_init=torch_conv_kernel_init,
+            bias_init=torch_conv_bias_init(9 * C),
+            dtype=self.dtype,
+            param_dtype=self.param_dtype,
+            name="offset_conv",
+        )(x)
+        d0 = jnp.tanh(d0[..., 0].astype(jnp.float32))
+        g = self.offset_grad_scale
+        d0 = g * d0 + (1.0 - g) * jax.lax.stop_gradient(d0)
+        d = self.offset_scale * d0  # (B,H,W), grid_sample-normalised units
+
+        P = jnp.asarray(P, jnp.float32)
+        disp = disparity_prior(H, P, self.stride, self.baseline, self.camera_height)  # (B,H)
+        base_rows = base_offset(
+            H, P, self.stride, self.object_height, self.camera_height, self.offset_formula
+        )  # (B,H)
+        offset_rows = (base_rows[:, :, None] / (H / 2.0) + d) * ((H - 1) / 2.0)
+        rows = jnp.arange(H, dtype=jnp.float32)[None, :, None] + offset_rows
+
+        disp_map = jnp.broadcast_to(disp[:, :, None, None], (B, H, W, 1)).astype(x.dtype)
+        sampled = vertical_gather(jnp.concatenate([disp_map, x], axis=-1), rows)
+        extracted = nn.Conv(
+            C,
+            (1, 1),
+            kernel_init=torch_conv_kernel_init,
+            bias_init=torch_conv_bias_init(C + 1),
+            dtype=self.dtype,
+            param_dtype=self.param_dtype,
+            name="extract",
+        )(sampled)
+        alpha = self.param("alpha", nn.initializers.zeros, (1,), self.param_dtype)
+        out = nn.relu(x + alpha.astype(self.dtype) * extracted)
+        return {
+            "features": out,
+            "offset_rows": offset_rows,
+            "sample_rows": jnp.clip(rows, 0.0, H - 1.0),
+        }
