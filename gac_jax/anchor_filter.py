@@ -38,7 +38,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from gac_jax.anchor_priors import INVALID_MEAN
+from gac_jax.anchor_priors import INVALID_MEAN, DetectionConstants
 
 FILTER_MODES = ("reference", "paper")
 
@@ -138,6 +138,17 @@ def ground_filter_mask(
         invalid_bins,
     )
     return keep[0] if single else keep
+
+
+def ground_mask_from_constants(constants: DetectionConstants, P2, **options):
+    """:func:`ground_filter_mask` for the anchors and prior depths of ``constants``.
+
+    ``P2`` (B, 3, 4) -> (B, N) bool; ``options`` are the keyword settings of
+    :func:`ground_filter_mask`.
+    """
+    return ground_filter_mask(
+        constants.anchor_centers, constants.prior_mean[..., 0], constants.prior_valid, P2, **options
+    )
 
 
 def ground_filter_mask_np(

@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 
 from gac_jax import geometry
-from gac_jax.anchor_filter import ground_filter_mask, ground_filter_mask_np
+from gac_jax.anchor_filter import (
+    ground_filter_mask,
+    ground_filter_mask_np,
+    ground_mask_from_constants,
+)
+from gac_jax.anchor_priors import AnchorPriors, make_detection_constants
 from gac_jax.anchors import AnchorLayout, box_iou_np, generate_anchors
 from gac_jax.data.files import read_image
 from gac_jax.data.kitti import KittiObjectLayout, read_calib, read_label
@@ -146,3 +151,35 @@ def test_filter_keeps_real_kitti_cars_and_drops_the_sky(kitti_object_root):
         # Below the horizon a good part survives (the filter is not trivially empty).
         assert keep["reference"][i][~sky].mean() > 0.2
     assert num_cars >= 25
+
+
+def test_mask_from_detection_constants_uses_each_bins_prior_depth():
+    layout = AnchorLayout(image_size=(96, 160))
+    anchors = generate_anchors(layout)
+    rng = np.random.default_rng(3)
+    a = layout.anchors_per_cell
+    valid = rng.uniform(size=(1, a)) > 0.3
+    priors = AnchorPriors(
+        layout=layout,
+        class_names=("Car",),
+        angle_mode="double",
+        count=np.full((1, a), 30),
+        mean=np.stack([rng.uniform(2, 20, (1, a)), np.zeros((1, a)), np.zeros((1, a))], -1),
+        std=np.ones((1, a, 3)),
+        valid=valid,
+        dims_mean=np.ones((1, 3)),
+        dims_std=np.ones((1, 3)),
+        num_objects=np.array([100]),
+        num_frames=5,
+    )
+    const = make_detection_constants(anchors, priors)
+    P2 = np.stack([P_SIMPLE * [[0.2], [0.2], [1]]] * 2)
+    P2[1, 1, 2] = 30.0
+    got = np.asarray(ground_mask_from_constants(const, P2, mode="paper"))
+    mean_z = priors.mean[:, anchors.bin_index, 0]
+    want = ground_filter_mask_np(
+        anchors.centers, mean_z, priors.valid[:, anchors.bin_index], P2, mode="paper"
+    )
+    assert got.shape == (2, len(anchors)) and 0.05 < want.mean() < 0.95
+    assert (got != want).sum() <= 2
+    assert not got[:, ~valid[0, anchors.bin_index]].any()
