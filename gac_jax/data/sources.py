@@ -30,6 +30,7 @@ from gac_jax.data.files import (
 from gac_jax.data.kitti import KittiObjectLayout, KittiObjects, parse_calib, parse_label
 
 OBJECT_DATASET = "gac_kitti_object"
+ALL_FRAMES = "frames"  # prepared split of every frame when a root has no ImageSets
 DEPTH_DATASET = "gac_kitti_depth"
 
 
@@ -346,7 +347,7 @@ class TfdsObjectSource:
 
     Args:
       prepared: the prepared dataset (see :func:`find_prepared`).
-      split: a split prepared from ``ImageSets/<split>.txt`` (``'all'`` when the
+      split: a split prepared from ``ImageSets/<split>.txt`` (``ALL_FRAMES`` = ``'frames'`` when the
         root had no split files).
     """
 
@@ -443,7 +444,7 @@ def open_object_source(
 ) -> KittiObjectSource | TfdsObjectSource:
     """A prepared dataset (TFDS) at ``path`` if there is one, else the KITTI folder."""
     if find_prepared(path, OBJECT_DATASET) is not None:
-        return TfdsObjectSource(path, split or "all", use_right_image, with_labels)
+        return TfdsObjectSource(path, split or ALL_FRAMES, use_right_image, with_labels)
     return KittiObjectSource(path, split, use_right_image, subset, with_labels)
 
 
