@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import pickle
+import re
+import shutil
 
 import numpy as np
 import pytest
 
 from gac_jax.data import transforms as tr
+from gac_jax.data.files import KittiFormatError
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.data.loader import (
     DEPTH_KEYS,
@@ -260,3 +264,22 @@ def test_mismatched_shapes_and_bad_arguments(source):
         make_loader(source, batch_size=5, num_shards=3)
     with pytest.raises(ValueError, match="shard_index"):
         make_loader(source, shard_index=2, num_shards=2)
+
+
+def test_file_errors_cross_worker_processes(kitti_object_root, tmp_path):
+    root = tmp_path / "kitti"
+    shutil.copytree(kitti_object_root / "training", root / "training")
+    shutil.copytree(kitti_object_root / "ImageSets", root / "ImageSets")
+    image = root / "training" / "image_2" / "000001.png"
+    image.write_bytes(image.read_bytes()[:300])
+    err = pickle.loads(pickle.dumps(KittiFormatError(image, "broken", 3)))
+    assert (err.path, err.problem, err.line, str(err)) == (
+        str(image),
+        "broken",
+        3,
+        f"{image}:3: broken",
+    )
+    src = KittiObjectSource(root, "labeled")
+    loader = make_loader(src, batch_size=2, shuffle=False, worker_count=1)
+    with pytest.raises(KittiFormatError, match="^" + re.escape(str(image)) + ": not a readable"):
+        list(loader.iterate(0, 1))
