@@ -27,7 +27,13 @@ from gac_jax.data.files import (
     decode_image,
     read_bytes,
 )
-from gac_jax.data.kitti import KittiObjectLayout, KittiObjects, parse_calib, parse_label
+from gac_jax.data.kitti import (
+    KittiObjectLayout,
+    KittiObjects,
+    parse_calib,
+    parse_label,
+    read_split,
+)
 
 OBJECT_DATASET = "gac_kitti_object"
 ALL_FRAMES = "frames"  # prepared split of every frame when a root has no ImageSets
@@ -122,8 +128,6 @@ def _check_index(i: int, n: int) -> int:
 
 def _split_lines(path: Path) -> list[tuple[str, int]]:
     """(frame id, line number) pairs of a split file (validated by the core reader first)."""
-    from gac_jax.data.kitti import read_split
-
     read_split(path)
     lines = read_bytes(path, "split file").decode().splitlines()
     return [(s.strip(), n) for n, s in enumerate(lines, start=1) if s.strip()]
