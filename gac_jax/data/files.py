@@ -22,6 +22,10 @@ class KittiFormatError(ValueError):
         self.line = line
         self.problem = problem
 
+    def __reduce__(self):
+        # Picklable with its own arguments, so it crosses loader worker processes intact.
+        return (type(self), (self.path, self.problem, self.line))
+
 
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator:
