@@ -1,0 +1,188 @@
+"""From images to KITTI detections: the jitted predict function and host post-processing.
+
+Device side (:func:`make_predict_fn`, one ``jax.jit``): backbone + heads,
+decoding of every anchor with its best class (anchor priors compiled in as
+constants), the ground-plane anchor filter and invalid-prior mask, and a fixed
+``top_k`` of candidates per image (static shapes).
+
+Host side (:func:`postprocess`): score threshold, 2D clipping, NMS, optional
+hill-climbing of the observation angle, back-projection to 3D, and mapping of
+2D boxes back to original-image pixels through the inverse of the sample's
+``image_transform``. Results are :class:`~gac_jax.data.kitti.KittiObjects`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gac_jax import geometry
+from gac_jax.anchor_filter import ground_mask_from_constants
+from gac_jax.anchor_priors import DetectionConstants
+from gac_jax.box_coding import decode_outputs
+from gac_jax.data.kitti import KittiObjects
+from gac_jax.data.transforms import transform_boxes
+from gac_jax.nms import batched_nms
+
+CANDIDATE_KEYS = ("scores", "labels", "boxes", "center", "depth", "dims", "alpha")
+
+
+@dataclasses.dataclass(frozen=True)
+class PostprocessConfig:
+    """Host-side post-processing settings (reference values in comments).
+
+    Attributes:
+      score_threshold: keep candidates above this (reference 0.75).
+      nms_iou: 2D NMS IoU threshold (0.5).
+      class_agnostic_nms: the reference is (accidentally) always class-agnostic.
+      hill_climbing: refine the observation angle on 2D-3D box consistency.
+      min_depth_hill_climbing: only objects farther than this are refined (3 m).
+      max_detections: cap per image after NMS (None: no cap).
+    """
+
+    score_threshold: float = 0.75
+    nms_iou: float = 0.5
+    class_agnostic_nms: bool = True
+    hill_climbing: bool = True
+    min_depth_hill_climbing: float = 3.0
+    max_detections: int | None = None
+
+
+def make_predict_fn(
+    model,
+    constants: DetectionConstants,
+    *,
+    top_k: int = 100,
+    filter_options: dict | None = None,
+    use_ground_filter: bool = True,
+) -> Callable:
+    """Builds ``predict(variables, images, P2) -> candidates`` (jitted).
+
+    Args:
+      model: a :class:`gac_jax.models.detector.Detector`.
+      constants: anchors and priors (closed over: compiled-in constants).
+      top_k: candidates per image (static).
+      filter_options: keyword options of :func:`gac_jax.anchor_filter.ground_filter_mask`.
+
+    Returns:
+      A jitted function of ``variables`` ({'params', 'batch_stats'}), ``images``
+      (B, H, W, 3) float32 normalised and ``P2`` (B, 3, 4) giving a dict of
+      (B, top_k, ...) arrays: ``scores``, ``labels``, ``boxes`` (xyxy, input
+      pixels), ``center`` (u, v), ``depth`` (homogeneous), ``dims`` (h, w, l),
+      ``alpha``; padding candidates have score -1.
+    """
+    filter_options = dict(filter_options or {})
+
+    @jax.jit
+    def predict(variables, images, P2):
+        outputs = model.apply(variables, images, P2, train=False)
+        decoded = decode_outputs(outputs, constants)
+        keep = decoded["prior_valid"]
+        if use_ground_filter:
+            keep = keep & ground_mask_from_constants(constants, P2, **filter_options)
+        scores = jnp.where(keep, decoded["scores"], -1.0)
+        k = min(top_k, scores.shape[1])
+        top_scores, index = jax.lax.top_k(scores, k)
+
+        def take(x):
+            idx = index.reshape(index.shape + (1,) * (x.ndim - 2))
+            return jnp.take_along_axis(x, idx, axis=1)
+
+        out = {key: take(decoded[key]) for key in CANDIDATE_KEYS if key != "scores"}
+        out["scores"] = top_scores
+        return out
+
+    return predict
+
+
+def candidates_to_objects(
+    candidates: dict[str, np.ndarray],
+    P2: np.ndarray,
+    image_transform: np.ndarray,
+    input_size: tuple[int, int],
+    original_size: tuple[int, int],
+    class_names: Sequence[str],
+    config: PostprocessConfig,
+) -> KittiObjects:
+    """Post-processes one image's candidates into KITTI objects in original-image pixels.
+
+    Args:
+      candidates: one image's slice of :func:`make_predict_fn`'s output (numpy).
+      P2: (3, 4) projection of the network input (after crop/resize).
+      image_transform: (3, 3) affine original -> input pixels.
+      input_size: (H, W) of the network input.
+      original_size: (H0, W0) of the original image.
+    """
+    c = {k: np.asarray(v, np.float64) for k, v in candidates.items()}
+    sel = c["scores"] > config.score_threshold
+    c = {k: v[sel] for k, v in c.items()}
+    h, w = input_size
+    boxes = c["boxes"].copy()
+    boxes[:, [0, 2]] = np.clip(boxes[:, [0, 2]], 0.0, w)
+    boxes[:, [1, 3]] = np.clip(boxes[:, [1, 3]], 0.0, h)
+    labels = c["labels"].astype(np.int64)
+    keep = batched_nms(boxes, c["scores"], labels, config.nms_iou, config.class_agnostic_nms)
+    if config.max_detections is not None:
+        keep = keep[: config.max_detections]
+    boxes, labels = boxes[keep], labels[keep]
+    c = {k: v[keep] for k, v in c.items()}
+    n = len(keep)
+    P2 = np.asarray(P2, np.float64)
+    centre = geometry.unproject(c["center"], c["depth"], P2).reshape(n, 3)
+    dims = c["dims"].reshape(n, 3)
+    location = centre + np.stack([np.zeros(n), dims[:, 0] / 2.0, np.zeros(n)], axis=1)
+    # alpha is measured from the current camera's optical centre (ReprojectBoxes' convention).
+    ry = geometry.rotation_y_from_alpha(c["alpha"], location, P2)
+    if config.hill_climbing and n:
+        from gac_jax.hill_climbing import optimize_rotation_y
+
+        far = centre[:, 2] > config.min_depth_hill_climbing
+        for i in np.flatnonzero(far):
+            ry[i] = optimize_rotation_y(boxes[i], location[i], dims[i], ry[i], P2, input_size)
+    alpha_kitti = geometry.alpha_from_rotation_y(ry, location, None)
+    inverse = np.linalg.inv(np.asarray(image_transform, np.float64))
+    boxes_orig = transform_boxes(boxes, inverse)
+    h0, w0 = original_size
+    boxes_orig[:, [0, 2]] = np.clip(boxes_orig[:, [0, 2]], 0.0, w0 - 1.0)
+    boxes_orig[:, [1, 3]] = np.clip(boxes_orig[:, [1, 3]], 0.0, h0 - 1.0)
+    names = np.asarray(class_names, dtype="<U16")
+    return KittiObjects.from_arrays(
+        type=names[labels] if n else np.zeros((0,), "<U16"),
+        truncated=np.full(n, -1.0),
+        occluded=np.full(n, -1),
+        alpha=alpha_kitti,
+        bbox=boxes_orig,
+        dimensions=dims,
+        location=location,
+        rotation_y=ry,
+        score=c["scores"],
+    )
+
+
+def postprocess(
+    candidates: dict[str, jax.Array],
+    batch: dict[str, np.ndarray],
+    class_names: Sequence[str],
+    config: PostprocessConfig,
+) -> list[KittiObjects]:
+    """:func:`candidates_to_objects` for every image of a batch (host numpy)."""
+    cand = {k: np.asarray(jax.device_get(v)) for k, v in candidates.items()}
+    input_size = tuple(np.asarray(batch["image"]).shape[1:3])
+    results = []
+    for b in range(cand["scores"].shape[0]):
+        results.append(
+            candidates_to_objects(
+                {k: v[b] for k, v in cand.items()},
+                batch["P2"][b],
+                batch["image_transform"][b],
+                input_size,
+                tuple(int(x) for x in batch["original_size"][b]),
+                class_names,
+                config,
+            )
+        )
+    return results

@@ -1,0 +1,70 @@
+"""Greedy non-maximum suppression on 2D boxes (host side, numpy).
+
+The reference implementation reads a misspelled config key and is therefore
+always class-agnostic; here the choice is explicit (``class_agnostic``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def box_iou_matrix(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
+    """IoU (Na, Nb) of xyxy boxes (continuous coordinates: area = (x2-x1)*(y2-y1))."""
+    a = np.asarray(boxes_a, np.float64).reshape(-1, 4)
+    b = np.asarray(boxes_b, np.float64).reshape(-1, 4)
+    area_a = np.clip(a[:, 2] - a[:, 0], 0, None) * np.clip(a[:, 3] - a[:, 1], 0, None)
+    area_b = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
+    iw = np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0])
+    ih = np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1])
+    inter = np.clip(iw, 0, None) * np.clip(ih, 0, None)
+    union = area_a[:, None] + area_b[None, :] - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
+def nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
+    """Indices of the boxes kept by greedy NMS, in descending score order.
+
+    A box is suppressed when its IoU with an already kept, higher-scoring box
+    is strictly greater than ``iou_threshold`` (torchvision's rule). Ties in
+    score keep the lower index first (stable).
+
+    Args:
+      boxes: (N, 4) xyxy.
+      scores: (N,).
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    order = np.argsort(-scores, kind="stable")
+    if order.size == 0:
+        return order.astype(np.int64)
+    iou = box_iou_matrix(boxes[order], boxes[order])
+    suppressed = np.zeros(order.size, bool)
+    keep = []
+    for i in range(order.size):
+        if suppressed[i]:
+            continue
+        keep.append(i)
+        suppressed |= iou[i] > iou_threshold
+    return order[np.asarray(keep, np.int64)]
+
+
+def batched_nms(
+    boxes: np.ndarray,
+    scores: np.ndarray,
+    classes: np.ndarray,
+    iou_threshold: float,
+    class_agnostic: bool = False,
+) -> np.ndarray:
+    """NMS within each class (or across all when ``class_agnostic``); kept indices by score."""
+    if class_agnostic:
+        return nms(boxes, scores, iou_threshold)
+    classes = np.asarray(classes).reshape(-1)
+    keep = [
+        np.flatnonzero(classes == c)[nms(boxes[classes == c], scores[classes == c], iou_threshold)]
+        for c in np.unique(classes)
+    ]
+    if not keep:
+        return np.zeros((0,), np.int64)
+    keep = np.concatenate(keep)
+    return keep[np.argsort(-np.asarray(scores)[keep], kind="stable")]
