@@ -1,0 +1,179 @@
+"""Runs a detector over a split, writes KITTI result files per frame and scores them.
+
+Shared by the trainer (periodic and final evaluation) and ``evaluate.py``.
+Device work is one jitted predict function (fixed batch shape: the last batch
+is padded); NMS, hill climbing, file I/O and the KITTI AP run on the host.
+Result files are named by frame id and written atomically as each batch
+finishes, so an interrupted run resumes without redoing finished frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from gac_jax.data.kitti import KittiObjects, read_label, write_label
+from gac_jax.data.loader import Loader, collate
+from gac_jax.evaluation.kitti_object import evaluate_detections
+from gac_jax.inference import PostprocessConfig, make_predict_fn, postprocess
+
+INPUT_KEYS = ("image", "P2", "image_transform", "original_size")
+
+
+@dataclasses.dataclass(frozen=True)
+class InputArrays:
+    """Picklable ``sample -> arrays`` with only what prediction needs (plus the frame id)."""
+
+    def __call__(self, sample: dict) -> dict[str, np.ndarray]:
+        image = np.asarray(sample["image"], np.float32)
+        return {
+            "image": image,
+            "P2": np.asarray(sample["P2"], np.float32),
+            "image_transform": np.asarray(sample["image_transform"], np.float32),
+            "original_size": np.asarray(sample["original_size"], np.int32),
+            "frame_id": np.asarray(sample["frame_id"]),
+        }
+
+
+def ground_truth(source, index: int) -> KittiObjects:
+    """Original labels of a source frame (label file when the source is a folder)."""
+    layout = getattr(source, "layout", None)
+    frame_ids = getattr(source, "frame_ids", None)
+    if layout is not None and frame_ids is not None:
+        return read_label(layout.label(frame_ids[index]))
+    return source[index]["objects"]
+
+
+class DetectionEvaluator:
+    """Predict + post-process + (optionally) write + score one split.
+
+    Args:
+      model: the Detector.
+      constants: anchors/priors (:class:`gac_jax.anchor_priors.DetectionConstants`).
+      source: a left-image object source of the split (labels needed to score).
+      transform: the test-time transform chain (crop, resize, pad, normalise).
+      class_names: class order of the model.
+      postprocess_config: host post-processing.
+      batch_size: images per predict call.
+      top_k: candidates per image from the device.
+      filter_options: ground filter options (as in training).
+      use_ground_filter: apply the ground-plane anchor filter.
+      worker_count: loader worker processes.
+    """
+
+    def __init__(
+        self,
+        model,
+        constants,
+        source,
+        transform,
+        class_names: Sequence[str],
+        postprocess_config: PostprocessConfig,
+        *,
+        batch_size: int = 8,
+        top_k: int = 100,
+        filter_options: dict | None = None,
+        use_ground_filter: bool = True,
+        worker_count: int = 0,
+    ):
+        self.source = source
+        self.class_names = tuple(class_names)
+        self.postprocess_config = postprocess_config
+        self.batch_size = batch_size
+        self.predict = make_predict_fn(
+            model,
+            constants,
+            top_k=top_k,
+            filter_options=filter_options,
+            use_ground_filter=use_ground_filter,
+        )
+        self.loader = Loader(
+            source,
+            transform,
+            InputArrays(),
+            batch_size=batch_size,
+            shuffle=False,
+            drop_remainder=False,
+            num_epochs=1,
+            worker_count=worker_count,
+        )
+
+    def frame_ids(self) -> list[str]:
+        ids = getattr(self.source, "frame_ids", None)
+        if ids is not None:
+            return list(ids)
+        return [self.source[i]["frame_id"] for i in range(len(self.source))]
+
+    def predict_split(
+        self,
+        variables,
+        result_dir: str | Path | None = None,
+        resume: bool = True,
+        max_batches: int | None = None,
+    ) -> tuple[dict[str, KittiObjects], dict[str, float]]:
+        """Detections of every frame (by frame id) and timings (seconds)."""
+        result_dir = Path(result_dir) if result_dir is not None else None
+        all_ids = self.frame_ids()
+        done: dict[str, KittiObjects] = {}
+        if result_dir is not None and resume:
+            for fid in all_ids:
+                path = result_dir / f"{fid}.txt"
+                if path.exists():
+                    done[fid] = read_label(path, with_score=True)
+        timings = {"model_s": 0.0, "postprocess_s": 0.0, "io_s": 0.0}
+        results = dict(done)
+        steps = self.loader.steps_per_epoch
+        t_io = time.perf_counter()
+        for step in range(steps if max_batches is None else min(steps, max_batches)):
+            _, indices = self.loader.step_indices(step)
+            if all(all_ids[i] in done for i in indices):
+                continue
+            batch = self.loader.load_batch(step)
+            n = len(batch["frame_id"])
+            if n < self.batch_size:  # pad to the compiled batch shape
+                batch = collate(
+                    [
+                        {k: v[min(i, n - 1)] for k, v in batch.items()}
+                        for i in range(self.batch_size)
+                    ]
+                )
+            timings["io_s"] += time.perf_counter() - t_io
+            t0 = time.perf_counter()
+            candidates = self.predict(variables, batch["image"], batch["P2"])
+            candidates = {k: np.asarray(v) for k, v in candidates.items()}
+            t1 = time.perf_counter()
+            objects = postprocess(candidates, batch, self.class_names, self.postprocess_config)
+            t2 = time.perf_counter()
+            timings["model_s"] += t1 - t0
+            timings["postprocess_s"] += t2 - t1
+            for b in range(n):
+                fid = str(batch["frame_id"][b])
+                results[fid] = objects[b]
+                if result_dir is not None:
+                    write_label(result_dir / f"{fid}.txt", objects[b], with_score=True)
+            t_io = time.perf_counter()
+        timings["io_s"] += time.perf_counter() - t_io
+        timings["num_frames"] = float(len(results) - len(done))
+        return results, timings
+
+    def evaluate(
+        self,
+        variables,
+        result_dir: str | Path | None = None,
+        resume: bool = True,
+        max_batches: int | None = None,
+    ) -> dict:
+        """Runs :meth:`predict_split` and the KITTI protocol; returns the metrics and timings."""
+        detections, timings = self.predict_split(variables, result_dir, resume, max_batches)
+        ids = self.frame_ids()
+        index = [i for i, fid in enumerate(ids) if fid in detections]
+        gt = [ground_truth(self.source, i) for i in index]
+        dt = [detections[ids[i]] for i in index]
+        t0 = time.perf_counter()
+        metrics = evaluate_detections(gt, dt, classes=self.class_names)
+        timings["kitti_eval_s"] = time.perf_counter() - t0
+        return {"metrics": metrics, "timings": timings, "num_frames": len(index)}
