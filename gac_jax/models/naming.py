@@ -19,9 +19,12 @@ kind            torch leaf            Flax leaf                            trans
 ==============  ====================  ===================================  ==================
 
 Rule tables: :func:`resnet_rules` (torchvision ResNet keys, any prefix), :data:`HEAD_RULES`
-(the reference ``GroundAwareHead``, prefix ``bbox_head.``) and :func:`detector_rules` (the
-whole reference ``GroundAwareYolo3D`` -> :class:`gac_jax.models.detector.Detector`).
-:data:`DETECTOR_IGNORED` lists reference buffers that are loss constants, not model state.
+(the reference ``GroundAwareHead``, prefix ``bbox_head.``), :func:`detector_rules` (the
+whole reference ``GroundAwareYolo3D`` -> :class:`gac_jax.models.detector.Detector`) and
+:func:`depth_unet_rules` (the reference ``MonoDepth`` ->
+:class:`gac_jax.models.depth_unet.DepthUNet`). :data:`DETECTOR_IGNORED` lists reference
+buffers that are loss constants, not model state; :data:`DEPTH_UNET_IGNORED` the depth net's
+``prior_mean`` (a module constant).
 
 :func:`convert_state_dict` applies a table to a flat ``{key: numpy array}`` dict and reports
 what was ignored, what matched nothing (``unused``) and which Flax leaves stayed unfilled
@@ -127,6 +130,31 @@ DETECTOR_IGNORED: tuple[str, ...] = (
 def detector_rules() -> tuple[Rule, ...]:
     """Rules for the reference ``GroundAwareYolo3D`` state dict -> ``Detector`` variables."""
     return resnet_rules("core.backbone.", "backbone/") + HEAD_RULES
+
+
+# Reference MonoDepth ``UNet_Core`` decoder and heads -> DepthUNet names (``up{i}`` stages).
+DEPTH_UNET_RULES: tuple[Rule, ...] = (
+    Rule(r"core\.up(\d)\.conv\.conv0", r"up\1/gac", "gate"),
+    Rule(r"core\.up(\d)\.conv\.conv0\.disp_create\.0", r"up\1/gac/offset_conv", "conv"),
+    Rule(r"core\.up(\d)\.conv\.conv0\.extract", r"up\1/gac/extract", "conv"),
+    Rule(r"core\.up(\d)\.conv\.conv1\.0", r"up\1/conv1", "conv"),
+    Rule(r"core\.up(\d)\.conv\.conv1\.1", r"up\1/bn1", "batch_norm"),
+    Rule(r"core\.up(\d)\.conv\.conv2\.0", r"up\1/conv2", "conv"),  # DCNv2 weight, bias
+    Rule(r"core\.up(\d)\.conv\.conv2\.0\.conv_offset", r"up\1/conv2/conv_offset", "conv"),
+    Rule(r"core\.up(\d)\.conv\.conv2\.1", r"up\1/bn2", "batch_norm"),
+    Rule(r"core\.out_scale_(\d)\.conv", r"out_scale_\1", "conv"),
+    Rule(r"core\.outc\.conv", "out_scale_1", "conv"),
+)
+
+# ``prior_mean`` is the constant ``DepthUNet(prior_mean=float(state_dict['prior_mean']))``.
+DEPTH_UNET_IGNORED: tuple[str, ...] = (r"prior_mean",)
+
+
+def depth_unet_rules() -> tuple[Rule, ...]:
+    """Rules for the reference ``MonoDepth`` state dict -> ``DepthUNet`` variables (use
+    ``decoder_conv='deformable'`` for the reference layout; ``conv_offset`` keys come back
+    ``unused`` for a plain-conv model)."""
+    return resnet_rules("core.backbone.", "backbone/") + DEPTH_UNET_RULES
 
 
 @dataclasses.dataclass
