@@ -102,6 +102,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.train.keep_checkpoints = 3
     c.train.eval_every = 0  # steps; 0 = only at the end
     c.train.eval_max_batches = 0  # 0 = the whole split
+    c.train.eval_at_end = True
 
     c.eval = ml_collections.ConfigDict()
     c.eval.score_threshold = 0.75

@@ -98,7 +98,7 @@ def apply_gradients_guarded(
     loss: jax.Array,
 ) -> tuple[TrainState, jax.Array]:
     """Applies an update unless the loss or gradients are non-finite; returns (state, grad_norm)."""
-    grad_norm = optax.global_norm(grads)
+    grad_norm = optax.tree.norm(grads)
     finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
     updates, new_opt_state = tx.update(grads, state.opt_state, state.params)
     new_params = optax.apply_updates(state.params, updates)

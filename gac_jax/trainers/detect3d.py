@@ -417,6 +417,6 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     if step > start_step or checkpoints.latest_step() != step:
         save(step)
     checkpoints.wait()
-    result = run_evaluation(step) if is_main else {}
+    result = run_evaluation(step) if is_main and config.train.eval_at_end else {}
     checkpoints.close()
     return result
