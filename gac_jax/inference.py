@@ -26,6 +26,7 @@ from gac_jax.anchor_priors import DetectionConstants
 from gac_jax.box_coding import decode_outputs
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.data.transforms import transform_boxes
+from gac_jax.hill_climbing import optimize_rotation_y_batch
 from gac_jax.nms import batched_nms
 
 CANDIDATE_KEYS = ("scores", "labels", "boxes", "center", "depth", "dims", "alpha")
@@ -41,6 +42,8 @@ class PostprocessConfig:
       class_agnostic_nms: the reference is (accidentally) always class-agnostic.
       hill_climbing: refine the observation angle on 2D-3D box consistency.
       min_depth_hill_climbing: only objects farther than this are refined (3 m).
+      hill_climbing_labels: class indices that are refined; the reference
+        refines only label 0 (its first class), None refines every class.
       max_detections: cap per image after NMS (None: no cap).
     """
 
@@ -49,6 +52,7 @@ class PostprocessConfig:
     class_agnostic_nms: bool = True
     hill_climbing: bool = True
     min_depth_hill_climbing: float = 3.0
+    hill_climbing_labels: tuple[int, ...] | None = (0,)
     max_detections: int | None = None
 
 
@@ -138,11 +142,13 @@ def candidates_to_objects(
     # alpha is measured from the current camera's optical centre (ReprojectBoxes' convention).
     ry = geometry.rotation_y_from_alpha(c["alpha"], location, P2)
     if config.hill_climbing and n:
-        from gac_jax.hill_climbing import optimize_rotation_y
-
-        far = centre[:, 2] > config.min_depth_hill_climbing
-        for i in np.flatnonzero(far):
-            ry[i] = optimize_rotation_y(boxes[i], location[i], dims[i], ry[i], P2, input_size)
+        refine = centre[:, 2] > config.min_depth_hill_climbing
+        if config.hill_climbing_labels is not None:
+            refine &= np.isin(labels, np.asarray(config.hill_climbing_labels, np.int64))
+        idx = np.flatnonzero(refine)
+        ry[idx] = optimize_rotation_y_batch(
+            boxes[idx], location[idx], dims[idx], ry[idx], P2, input_size
+        )
     alpha_kitti = geometry.alpha_from_rotation_y(ry, location, None)
     inverse = np.linalg.inv(np.asarray(image_transform, np.float64))
     boxes_orig = transform_boxes(boxes, inverse)

@@ -56,7 +56,16 @@ def batched_nms(
     iou_threshold: float,
     class_agnostic: bool = False,
 ) -> np.ndarray:
-    """NMS within each class (or across all when ``class_agnostic``); kept indices by score."""
+    """NMS within each class (or across all when ``class_agnostic``).
+
+    Returns the kept indices by descending score; equal scores keep the lower
+    index first, across classes too (the same order as the agnostic path).
+
+    Args:
+      boxes: (N, 4) xyxy; scores: (N,); classes: (N,) integer labels.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
+    scores = np.asarray(scores, np.float64).reshape(-1)
     if class_agnostic:
         return nms(boxes, scores, iou_threshold)
     classes = np.asarray(classes).reshape(-1)
@@ -66,5 +75,5 @@ def batched_nms(
     ]
     if not keep:
         return np.zeros((0,), np.int64)
-    keep = np.concatenate(keep)
-    return keep[np.argsort(-np.asarray(scores)[keep], kind="stable")]
+    keep = np.sort(np.concatenate(keep))
+    return keep[np.argsort(-scores[keep], kind="stable")]

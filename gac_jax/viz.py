@@ -1,0 +1,498 @@
+"""Pictures of detections and depth maps (OpenCV; RGB uint8 in, RGB uint8 out).
+
+* :func:`draw_detections` / :func:`draw_objects`: 3D boxes as projected
+  wireframes (edges cut at the camera's near plane, then clipped to the image)
+  with a cross on the front face (corners 0, 1, 5, 4 of
+  :func:`gac_jax.geometry.box3d_corners`, the object's +x side), 2D boxes and
+  "class score" labels; ground truth in its own colour.
+* :func:`draw_bev` on a :class:`BevGrid`: top-down view (camera x to the
+  right, z up the picture) with a metre grid, boxes as rotated rectangles and a
+  heading mark from the centre to the front edge.
+* :func:`image_grid`: tiles of several pictures with captions.
+* :func:`colorize_depth` and :func:`depth_panel`: depth maps in a perceptual
+  colour map (near = bright), invalid pixels black.
+
+Nothing here writes files except :func:`save_image`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import os
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from gac_jax import geometry
+from gac_jax.data.files import write_png
+from gac_jax.data.kitti import KittiObjects
+
+Color = tuple[int, int, int]
+
+GT_COLOR: Color = (0, 255, 0)
+CLASS_COLORS: dict[str, Color] = {
+    "Car": (255, 128, 0),
+    "Van": (255, 200, 0),
+    "Truck": (255, 80, 80),
+    "Pedestrian": (255, 0, 255),
+    "Person_sitting": (200, 0, 255),
+    "Cyclist": (0, 200, 255),
+}
+DEFAULT_COLOR: Color = (255, 255, 0)
+
+# Segments of a box wireframe: the 12 edges, then the front-face cross (diagonals 0-5, 1-4).
+WIREFRAME = np.concatenate([geometry.BOX_EDGES, [[0, 5], [1, 4]]])
+_SHIFT = 4  # cv2 fixed-point bits: sub-pixel line end points
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def _check_image(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got {image.dtype} {image.shape}")
+    return image
+
+
+def class_color(name: str) -> Color:
+    """Colour of a predicted class (:data:`CLASS_COLORS`, else :data:`DEFAULT_COLOR`)."""
+    return CLASS_COLORS.get(str(name), DEFAULT_COLOR)
+
+
+def drawable(objects: KittiObjects) -> np.ndarray:
+    """(N,) mask of objects with a 3D box (not DontCare, positive dimensions, finite)."""
+    ok = (objects.type != "DontCare") & np.all(objects.dimensions > 0, axis=1)
+    return ok & np.all(np.isfinite(objects.location), axis=1) & np.isfinite(objects.rotation_y)
+
+
+# --------------------------------------------------------------------------- segment geometry
+
+
+def box3d_segments(
+    location: np.ndarray,
+    dims: np.ndarray,
+    ry: np.ndarray,
+    P: np.ndarray,
+    near: float = 0.1,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Image segments of 3D-box wireframes, cut at the plane ``depth = near``.
+
+    Args:
+      location: (N, 3) bottom-face centres (camera frame); dims: (N, 3) ``(h, w, l)``;
+      ry: (N,) yaw; P: (3, 4) projection.
+
+    Returns:
+      segments (N, 14, 2, 2) end points ``(u, v)`` of the :data:`WIREFRAME`
+      segments (12 edges, then the 2 front-face diagonals), and valid (N, 14),
+      False for segments entirely behind the near plane. Not clipped to an image.
+    """
+    corners = geometry.box3d_corners(location, dims, ry)  # (N, 8, 3)
+    a, b = corners[:, WIREFRAME[:, 0]], corners[:, WIREFRAME[:, 1]]  # (N, 14, 3)
+    _, wa = geometry.project(a, P)
+    _, wb = geometry.project(b, P)
+    valid = (wa >= near) | (wb >= near)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip((near - wa) / (wb - wa), 0.0, 1.0)
+    cut = a + t[..., None] * (b - a)
+    a = np.where((wa < near)[..., None], cut, a)
+    b = np.where((wb < near)[..., None], cut, b)
+    uv_a, _ = geometry.project(a, P)
+    uv_b, _ = geometry.project(b, P)
+    segments = np.stack([uv_a, uv_b], axis=-2)
+    segments = np.where(valid[..., None, None], segments, 0.0)
+    return segments, valid
+
+
+def clip_segments(
+    segments: np.ndarray, image_size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Liang-Barsky clipping of (..., 2, 2) segments to ``[0, W-1] x [0, H-1]``.
+
+    Returns the clipped segments and a mask of those with a visible part.
+    """
+    seg = np.asarray(segments, np.float64)
+    height, width = image_size
+    p0, d = seg[..., 0, :], seg[..., 1, :] - seg[..., 0, :]
+    t0 = np.zeros(seg.shape[:-2])
+    t1 = np.ones(seg.shape[:-2])
+    inside = np.all(np.isfinite(seg), axis=(-1, -2))
+    for axis, hi in ((0, width - 1.0), (1, height - 1.0)):
+        for p, q in ((-d[..., axis], p0[..., axis]), (d[..., axis], hi - p0[..., axis])):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = q / p
+            parallel = p == 0
+            inside &= ~(parallel & (q < 0))
+            t0 = np.where(~parallel & (p < 0), np.maximum(t0, r), t0)
+            t1 = np.where(~parallel & (p > 0), np.minimum(t1, r), t1)
+    inside &= t0 <= t1
+    out = np.stack([p0 + t0[..., None] * d, p0 + t1[..., None] * d], axis=-2)
+    return np.where(inside[..., None, None], out, 0.0), inside
+
+
+def _fixed(point: np.ndarray) -> tuple[int, int]:
+    return (int(round(point[0] * (1 << _SHIFT))), int(round(point[1] * (1 << _SHIFT))))
+
+
+def _draw_segments(canvas, segments, valid, color, thickness):
+    for (p, q), ok in zip(segments.reshape(-1, 2, 2), valid.reshape(-1), strict=True):
+        if ok:
+            cv2.line(canvas, _fixed(p), _fixed(q), color, thickness, cv2.LINE_AA, _SHIFT)
+
+
+def _draw_label(canvas, text, box, color, scale=0.4):
+    """Text on a filled strip inside the top-left corner of ``box`` (kept within the image)."""
+    height, width = canvas.shape[:2]
+    (tw, th), base = cv2.getTextSize(text, _FONT, scale, 1)
+    x = int(np.clip(math.floor(box[0]), 0, max(width - tw - 2, 0)))
+    y = int(np.clip(math.floor(box[1]), 0, max(height - th - base - 2, 0)))
+    cv2.rectangle(canvas, (x, y), (x + tw + 1, y + th + base + 1), color, cv2.FILLED)
+    luma = 0.299 * color[0] + 0.587 * color[1] + 0.114 * color[2]
+    ink = (0, 0, 0) if luma > 128 else (255, 255, 255)
+    cv2.putText(canvas, text, (x + 1, y + th + 1), _FONT, scale, ink, 1, cv2.LINE_AA)
+
+
+# --------------------------------------------------------------------------- camera view
+
+
+def draw_objects(
+    image: np.ndarray,
+    objects: KittiObjects,
+    P2: np.ndarray,
+    *,
+    color: Color | None = None,
+    thickness: int = 2,
+    draw_3d: bool = True,
+    draw_2d: bool = False,
+    show_labels: bool = True,
+    near: float = 0.1,
+) -> np.ndarray:
+    """Draws objects on a copy of ``image``.
+
+    Args:
+      image: (H, W, 3) uint8 RGB; P2: (3, 4) projection of this image.
+      objects: boxes in this image's camera frame; ``bbox`` in its pixels.
+      color: one colour for all, or None for :func:`class_color` per class.
+      draw_3d: projected wireframes with the front-face cross (DontCare and
+        boxes without dimensions are skipped; edges behind ``near`` are cut).
+      draw_2d: the ``bbox`` rectangles (thin).
+      show_labels: "type score" (score when finite) inside the top-left corner
+        of the object's 2D extent (projected 3D box, or ``bbox`` without 3D).
+
+    Returns:
+      (H, W, 3) uint8 RGB.
+    """
+    canvas = _check_image(image).copy()
+    size = canvas.shape[:2]
+    keep = objects.type != "DontCare"
+    objects = objects.select(keep)
+    has_3d = drawable(objects)
+    drawn_3d = np.zeros(len(objects), bool)
+    extent = objects.bbox.copy()
+    if draw_3d and has_3d.any():
+        idx = np.flatnonzero(has_3d)
+        segments, valid = box3d_segments(
+            objects.location[idx], objects.dimensions[idx], objects.rotation_y[idx], P2, near
+        )
+        clipped, visible = clip_segments(segments, size)
+        visible &= valid
+        for k, i in enumerate(idx):
+            c = color if color is not None else class_color(objects.type[i])
+            _draw_segments(canvas, clipped[k], visible[k], c, thickness)
+            if visible[k].any():
+                pts = clipped[k][visible[k]].reshape(-1, 2)
+                extent[i] = [*pts.min(axis=0), *pts.max(axis=0)]
+                drawn_3d[i] = True
+    for i in range(len(objects)):
+        c = color if color is not None else class_color(objects.type[i])
+        box = objects.bbox[i]
+        if draw_2d and np.all(np.isfinite(box)) and box[2] > box[0] and box[3] > box[1]:
+            cv2.rectangle(canvas, _fixed(box[:2]), _fixed(box[2:]), c, 1, cv2.LINE_AA, _SHIFT)
+        if show_labels and (drawn_3d[i] or draw_2d):
+            score = objects.score[i]
+            text = str(objects.type[i]) + (f" {score:.2f}" if np.isfinite(score) else "")
+            _draw_label(canvas, text, extent[i], c)
+    return canvas
+
+
+def draw_detections(
+    image: np.ndarray,
+    P2: np.ndarray,
+    predictions: KittiObjects | None = None,
+    ground_truth: KittiObjects | None = None,
+    *,
+    draw_2d: bool = True,
+    show_labels: bool = True,
+    thickness: int = 2,
+) -> np.ndarray:
+    """Ground truth (thin, :data:`GT_COLOR`) under predictions (class colours, with scores).
+
+    Args:
+      image: (H, W, 3) uint8 RGB; P2: (3, 4) its projection.
+      predictions, ground_truth: :class:`KittiObjects` in this image's frame, or None.
+    """
+    canvas = _check_image(image)
+    if ground_truth is not None:
+        thin = max(thickness - 1, 1)
+        canvas = draw_objects(
+            canvas, ground_truth, P2, color=GT_COLOR, thickness=thin, show_labels=False
+        )
+    if predictions is not None:
+        canvas = draw_objects(
+            canvas, predictions, P2, thickness=thickness, draw_2d=draw_2d, show_labels=show_labels
+        )
+    return canvas.copy() if canvas is image else canvas
+
+
+# --------------------------------------------------------------------------- bird's-eye view
+
+
+@dataclasses.dataclass(frozen=True)
+class BevGrid:
+    """Metric frame of a bird's-eye-view picture.
+
+    Camera ``x`` (right) maps to columns, camera ``z`` (forward) to rows
+    upwards: ``u = (x - x_range[0]) * pixels_per_metre``,
+    ``v = (z_range[1] - z) * pixels_per_metre``; both range ends are inside.
+    """
+
+    x_range: tuple[float, float] = (-30.0, 30.0)
+    z_range: tuple[float, float] = (0.0, 70.0)
+    pixels_per_metre: float = 10.0
+    grid_step: float = 10.0
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(H, W)`` of the picture."""
+        ppm = self.pixels_per_metre
+        h = round((self.z_range[1] - self.z_range[0]) * ppm) + 1
+        w = round((self.x_range[1] - self.x_range[0]) * ppm) + 1
+        return int(h), int(w)
+
+    def to_pixels(self, x: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """(..., 2) pixel ``(u, v)`` of ground points ``(x, z)`` (metres)."""
+        u = (np.asarray(x, np.float64) - self.x_range[0]) * self.pixels_per_metre
+        v = (self.z_range[1] - np.asarray(z, np.float64)) * self.pixels_per_metre
+        return np.stack([u, v], axis=-1)
+
+
+def _bev_background(grid: BevGrid, background: Color, line: Color) -> np.ndarray:
+    h, w = grid.size
+    canvas = np.empty((h, w, 3), np.uint8)
+    canvas[:] = background
+    step = grid.grid_step
+    for x in np.arange(math.ceil(grid.x_range[0] / step) * step, grid.x_range[1] + 1e-9, step):
+        u = grid.to_pixels(x, grid.z_range[0])[0]
+        cv2.line(canvas, (round(u), 0), (round(u), h - 1), line, 1)
+        if x != 0:
+            cv2.putText(canvas, f"{x:g}", (round(u) + 3, h - 4), _FONT, 0.35, line, 1, cv2.LINE_AA)
+    for z in np.arange(math.ceil(grid.z_range[0] / step) * step, grid.z_range[1] + 1e-9, step):
+        v = grid.to_pixels(grid.x_range[0], z)[1]
+        cv2.line(canvas, (0, round(v)), (w - 1, round(v)), line, 1)
+        cv2.putText(canvas, f"{z:g} m", (3, round(v) - 3), _FONT, 0.35, line, 1, cv2.LINE_AA)
+    # Camera at the origin: a small triangle pointing forward (+z, up the picture).
+    o = grid.to_pixels(0.0, 0.0)
+    tri = np.array([o + [-6, 0], o + [6, 0], o + [0, -10]])
+    cv2.fillPoly(
+        canvas, [np.round(tri * (1 << _SHIFT)).astype(np.int32)], line, cv2.LINE_AA, _SHIFT
+    )
+    return canvas
+
+
+def _bev_boxes(canvas, grid, objects, color, thickness):
+    objects = objects.select(drawable(objects))
+    if not len(objects):
+        return
+    corners = geometry.box3d_corners(objects.location, objects.dimensions, objects.rotation_y)
+    footprint = grid.to_pixels(corners[:, :4, 0], corners[:, :4, 2])  # (N, 4, 2)
+    centre = footprint.mean(axis=1)
+    front = footprint[:, :2].mean(axis=1)  # corners 0, 1: the front (+x) edge
+    for i in range(len(objects)):
+        c = color if color is not None else class_color(objects.type[i])
+        poly = np.round(footprint[i] * (1 << _SHIFT)).astype(np.int32)
+        cv2.polylines(canvas, [poly], True, c, thickness, cv2.LINE_AA, _SHIFT)
+        cv2.line(canvas, _fixed(centre[i]), _fixed(front[i]), c, thickness, cv2.LINE_AA, _SHIFT)
+
+
+def draw_bev(
+    predictions: KittiObjects | None = None,
+    ground_truth: KittiObjects | None = None,
+    grid: BevGrid | None = None,
+    *,
+    thickness: int = 2,
+    background: Color = (24, 24, 24),
+    grid_color: Color = (80, 80, 80),
+) -> np.ndarray:
+    """Bird's-eye view: footprints (bottom faces) with heading marks; GT under predictions.
+
+    Returns an (H, W, 3) uint8 RGB picture of ``grid.size`` (default 701 x 601
+    for x in [-30, 30] m, z in [0, 70] m at 10 px/m). Ground truth is drawn in
+    :data:`GT_COLOR`, predictions in their class colours; the heading mark
+    runs from the footprint's centre to the middle of its front edge.
+    """
+    grid = grid or BevGrid()
+    canvas = _bev_background(grid, background, grid_color)
+    if ground_truth is not None:
+        _bev_boxes(canvas, grid, ground_truth, GT_COLOR, thickness)
+    if predictions is not None:
+        _bev_boxes(canvas, grid, predictions, None, thickness)
+    return canvas
+
+
+# --------------------------------------------------------------------------- layout
+
+
+def image_grid(
+    images: Sequence[np.ndarray],
+    captions: Sequence[str] | None = None,
+    columns: int = 1,
+    *,
+    pad: int = 4,
+    caption_height: int = 18,
+    background: Color = (0, 0, 0),
+) -> np.ndarray:
+    """Tiles pictures row by row into one RGB uint8 picture.
+
+    Every cell is as large as the largest picture (smaller ones centred); with
+    captions each cell has a ``caption_height`` strip of text above it. The
+    result is ``(rows * (Hc + caption) + (rows + 1) * pad, columns * Wc +
+    (columns + 1) * pad, 3)`` with ``rows = ceil(N / columns)``.
+
+    Args:
+      images: (H, W, 3) uint8 RGB or (H, W) uint8 grey pictures.
+      captions: one string per picture, or None.
+      columns: cells per row.
+    """
+    if not images:
+        raise ValueError("image_grid needs at least one image")
+    if captions is not None and len(captions) != len(images):
+        raise ValueError(f"{len(captions)} captions for {len(images)} images")
+    if columns < 1:
+        raise ValueError(f"columns must be >= 1, got {columns}")
+    pics = []
+    for im in images:
+        im = np.asarray(im)
+        if im.ndim == 2 and im.dtype == np.uint8:
+            im = np.repeat(im[..., None], 3, axis=2)
+        pics.append(_check_image(im))
+    cell_h = max(p.shape[0] for p in pics)
+    cell_w = max(p.shape[1] for p in pics)
+    strip = caption_height if captions is not None else 0
+    columns = min(columns, len(pics))
+    rows = math.ceil(len(pics) / columns)
+    out = np.empty(
+        (rows * (cell_h + strip) + (rows + 1) * pad, columns * cell_w + (columns + 1) * pad, 3),
+        np.uint8,
+    )
+    out[:] = background
+    for k, pic in enumerate(pics):
+        r, c = divmod(k, columns)
+        top = pad + r * (cell_h + strip + pad)
+        left = pad + c * (cell_w + pad)
+        if captions is not None:
+            org = (left + 2, top + strip - 5)
+            cv2.putText(out, str(captions[k]), org, _FONT, 0.45, (255,) * 3, 1, cv2.LINE_AA)
+        y = top + strip + (cell_h - pic.shape[0]) // 2
+        x = left + (cell_w - pic.shape[1]) // 2
+        out[y : y + pic.shape[0], x : x + pic.shape[1]] = pic
+    return out
+
+
+# --------------------------------------------------------------------------- depth
+
+
+@functools.cache
+def _colormap_lut(colormap: int) -> np.ndarray:
+    """(256, 3) RGB table of an OpenCV colour map."""
+    ramp = np.arange(256, dtype=np.uint8).reshape(256, 1)
+    return cv2.cvtColor(cv2.applyColorMap(ramp, colormap), cv2.COLOR_BGR2RGB)[:, 0]
+
+
+def colorize_depth(
+    depth: np.ndarray,
+    *,
+    min_depth: float = 1.0,
+    max_depth: float = 80.0,
+    scale: str = "log",
+    colormap: int = cv2.COLORMAP_MAGMA,
+    dilate: int = 0,
+    lowest_index: int = 24,
+) -> np.ndarray:
+    """Colours an (H, W) depth map (metres; <= 0, NaN or inf = invalid) as RGB uint8.
+
+    Near is bright: the colour-map index grows with ``-log(depth)`` (``scale =
+    'log'``, default: spreads 5-80 m street scenes well) or ``1/depth``
+    (``'inverse'``, the disparity view) over the fixed range
+    ``[min_depth, max_depth]`` (values outside are clamped), so pictures of
+    different frames compare. Indices start at ``lowest_index`` so that the
+    farthest valid depth is never confused with the black of invalid pixels.
+
+    Args:
+      dilate: odd kernel size (pixels) to grow sparse ground truth; where
+        points compete the nearest wins (max filter on inverse depth).
+    """
+    d = np.asarray(depth, np.float64)
+    if d.ndim != 2:
+        raise ValueError(f"expected an (H, W) depth map, got shape {d.shape}")
+    if not 0 < min_depth < max_depth:
+        raise ValueError(f"need 0 < min_depth < max_depth, got {min_depth}, {max_depth}")
+    valid = np.isfinite(d) & (d > 0)
+    if dilate > 1:
+        inv = np.where(valid, 1.0 / np.where(valid, d, 1.0), 0.0).astype(np.float32)
+        inv = cv2.dilate(inv, np.ones((dilate, dilate), np.uint8))
+        valid = inv > 0
+        d = np.where(valid, 1.0 / np.where(valid, inv, 1.0), 0.0)
+    dc = np.clip(np.where(valid, d, max_depth), min_depth, max_depth)
+    if scale == "inverse":
+        t = (1.0 / dc - 1.0 / max_depth) / (1.0 / min_depth - 1.0 / max_depth)
+    elif scale == "log":
+        t = (np.log(max_depth) - np.log(dc)) / (np.log(max_depth) - np.log(min_depth))
+    else:
+        raise ValueError(f"scale must be 'inverse' or 'log', got {scale!r}")
+    index = np.round(lowest_index + t * (255 - lowest_index)).astype(np.int64)
+    out = _colormap_lut(colormap)[index]
+    out[~valid] = 0
+    return out
+
+
+def depth_panel(
+    image: np.ndarray,
+    prediction: np.ndarray,
+    ground_truth: np.ndarray | None = None,
+    *,
+    min_depth: float = 1.0,
+    max_depth: float = 80.0,
+    scale: str = "log",
+    gt_dilate: int = 3,
+    columns: int = 1,
+) -> np.ndarray:
+    """Image | predicted depth | sparse ground truth (dilated), tiled with captions.
+
+    Depth maps of another size than the image are resized to it (nearest).
+    With ``columns = 1`` (default, suits wide KITTI frames) the panels stack
+    vertically.
+    """
+    image = _check_image(image)
+    size = image.shape[1], image.shape[0]
+
+    def panel(depth, dilate):
+        pic = colorize_depth(
+            depth, min_depth=min_depth, max_depth=max_depth, scale=scale, dilate=dilate
+        )
+        if pic.shape[:2] != image.shape[:2]:
+            pic = cv2.resize(pic, size, interpolation=cv2.INTER_NEAREST)
+        return pic
+
+    rng = f"{min_depth:g}-{max_depth:g} m, {scale}"
+    pics = [image, panel(prediction, 0)]
+    captions = ["image", f"prediction ({rng})"]
+    if ground_truth is not None:
+        pics.append(panel(ground_truth, gt_dilate))
+        captions.append(f"ground truth ({rng})")
+    return image_grid(pics, captions, columns)
+
+
+def save_image(path: str | os.PathLike, rgb: np.ndarray) -> None:
+    """Writes an RGB uint8 picture as PNG (atomically)."""
+    write_png(path, _check_image(rgb))
