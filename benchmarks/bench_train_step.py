@@ -1,0 +1,187 @@
+"""Train-step time, jit compile time and peak memory of the detection trainer.
+
+    python benchmarks/bench_train_step.py                      # paper + default configs
+    python benchmarks/bench_train_step.py --configs default --batch-sizes 8 --steps 10
+
+Each (config, batch size) runs in its own subprocess so that peak resident
+memory (``ru_maxrss``) belongs to that case alone. Inputs are random images
+with real-looking calibration and random ground truth; the step is the
+trainer's own jitted step (``gac_jax.trainers.detect3d.make_train_step``).
+Reports the median step time over ``--steps`` steps after the compile step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # run from a checkout without installing
+CONFIGS = {
+    "paper": str(REPO / "configs" / "detect3d_kitti.py"),
+    "default": str(REPO / "configs" / "detect3d_default.py"),
+}
+
+
+def run_case(config_spec: str, batch_size: int, steps: int) -> dict:
+    import resource
+    import time
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from gac_jax import parallel
+    from gac_jax.anchor_priors import AnchorPriors, make_detection_constants
+    from gac_jax.anchors import generate_anchors
+    from gac_jax.config import load_config
+    from gac_jax.train_state import TrainState, learning_rate_schedule, make_optimizer
+    from gac_jax.trainers import detect3d
+
+    c = load_config(config_spec)
+    c.data.batch_size = batch_size
+    layout = detect3d.anchor_layout(c)
+    anchors = generate_anchors(layout)
+    k, a = len(c.data.classes), layout.anchors_per_cell
+    sizes = np.sqrt(np.prod(layout.bin_shapes(), axis=1))
+    mean = np.zeros((k, a, 3))
+    mean[..., 0] = 700.0 * 1.5 / sizes * c.data.height / 288  # depth ~ f H / h
+    priors = AnchorPriors(
+        layout=layout,
+        class_names=tuple(c.data.classes),
+        angle_mode="double",
+        count=np.full((k, a), 100),
+        mean=mean,
+        std=np.ones((k, a, 3)),
+        valid=np.ones((k, a), bool),
+        dims_mean=np.tile([1.5, 1.6, 3.9], (k, 1)),
+        dims_std=np.ones((k, 3)) * 0.2,
+        num_objects=np.full(k, 1000),
+        num_frames=1000,
+        iou_threshold=0.5,
+        min_count=10,
+        min_std=1e-3,
+    )
+    constants = make_detection_constants(anchors, priors)
+    model = detect3d.build_model(c, a)
+    mesh = parallel.make_mesh()
+    tx = make_optimizer(learning_rate_schedule(1e-4, 1e-5, 1000), 0.1)
+    t0 = time.perf_counter()
+    v = detect3d.init_variables(model, c, 0)
+    init_s = time.perf_counter() - t0
+    rep = parallel.replicated(mesh)
+    state = jax.device_put(TrainState.create(v["params"], v["batch_stats"], tx, 0), rep)
+    step = detect3d.make_train_step(
+        model, tx, constants, detect3d.loss_config(c), c, mesh, jax.tree.map(lambda _: rep, state)
+    )
+    rng = np.random.default_rng(0)
+    h, w, m = c.data.height, c.data.width, c.data.max_objects
+    P2 = np.array([[700.0, 0, w / 2, 45], [0, 700.0, 75 * h / 288, 0], [0, 0, 1, 0.005]])
+    x1 = rng.uniform(0, w - 100, (batch_size, m))
+    y1 = rng.uniform(h / 3, h - 60, (batch_size, m))
+    boxes = np.stack([x1, y1, x1 + rng.uniform(20, 100, x1.shape), y1 + 40], -1)
+    batch = {
+        "image": rng.standard_normal((batch_size, h, w, 3)).astype(np.float32),
+        "P2": np.broadcast_to(P2, (batch_size, 3, 4)).astype(np.float32),
+        "gt_mask": np.arange(m)[None].repeat(batch_size, 0) < 6,
+        "gt_class": np.zeros((batch_size, m), np.int32),
+        "gt_boxes": boxes.astype(np.float32),
+        "gt_center": ((boxes[..., :2] + boxes[..., 2:]) / 2).astype(np.float32),
+        "gt_depth": rng.uniform(5, 50, (batch_size, m)).astype(np.float32),
+        "gt_dims": np.tile([1.5, 1.6, 3.9], (batch_size, m, 1)).astype(np.float32),
+        "gt_alpha": rng.uniform(-3, 3, (batch_size, m)).astype(np.float32),
+    }
+    batch = parallel.to_global(batch, mesh)
+    t0 = time.perf_counter()
+    compiled = step.lower(state, batch).compile()
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(steps + 1):
+        t0 = time.perf_counter()
+        state, metrics = compiled(state, batch)
+        jax.block_until_ready(metrics["loss"])
+        times.append(time.perf_counter() - t0)
+    times = times[1:]  # the first call also transfers/allocates
+    n_params = sum(x.size for x in jax.tree.leaves(state.params))
+    return {
+        "config": config_spec,
+        "input": f"{h}x{w}",
+        "backbone": f"ResNet-{c.model.backbone_depth}",
+        "params": int(n_params),
+        "batch_size": batch_size,
+        "init_s": round(init_s, 2),
+        "compile_s": round(compile_s, 2),
+        "step_s_median": round(float(np.median(times)), 4),
+        "step_s_all": [round(t, 4) for t in times],
+        "images_per_s": round(batch_size / float(np.median(times)), 2),
+        "peak_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),
+        "loss_finite": bool(jnp.isfinite(metrics["loss"])),
+    }
+
+
+def machine() -> dict:
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import jax
+
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "devices": str(jax.devices()),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--configs", default="paper,default")
+    parser.add_argument(
+        "--batch-sizes", default="", help="comma list (default: 8 and the config's)"
+    )
+    parser.add_argument("--steps", type=int, default=3)
+    parser.add_argument("--json", help="write the results here")
+    parser.add_argument("--case", help=argparse.SUPPRESS)  # internal: run one case
+    args = parser.parse_args()
+    if args.case:
+        spec, bs = args.case.rsplit("@", 1)
+        print(json.dumps(run_case(spec, int(bs), args.steps)))
+        return
+    from gac_jax.config import load_config
+
+    results = []
+    for name in args.configs.split(","):
+        spec = CONFIGS.get(name, name)
+        sizes = [int(b) for b in args.batch_sizes.split(",") if b] or sorted(
+            {8, load_config(spec).data.batch_size}
+        )
+        for bs in sizes:
+            cmd = [sys.executable, __file__, "--case", f"{spec}@{bs}", "--steps", str(args.steps)]
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                tail = proc.stderr.strip().splitlines()[-1:] or ["(no output)"]
+                result = {"config": spec, "batch_size": bs, "error": tail[0]}
+            else:
+                result = json.loads(proc.stdout.strip().splitlines()[-1])
+            results.append(result)
+            print(json.dumps(result), flush=True)
+    report = {"machine": machine(), "results": results}
+    print(json.dumps(report["machine"]))
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
