@@ -238,9 +238,9 @@ def init_variables(model: Detector, config, seed: int) -> dict:
         {"params": key, "dropout": key}, images, P2
     )
     if config.model.pretrained_backbone:
-        from gac_jax.pretrained import load_backbone_init
+        from gac_jax.pretrained import init_backbone
 
-        variables = load_backbone_init(config.model.pretrained_backbone, variables)
+        variables = init_backbone(variables, config.model.pretrained_backbone)
     return {"params": variables["params"], "batch_stats": variables.get("batch_stats", {})}
 
 
