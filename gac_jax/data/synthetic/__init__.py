@@ -1,0 +1,1 @@
+"""Procedural KITTI-format driving scenes (object detection + depth layouts)."""
