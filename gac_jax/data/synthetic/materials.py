@@ -60,51 +60,76 @@ def sky_rows(elevation: np.ndarray, top, horizon) -> np.ndarray:
     return (np.asarray(horizon) * (1.0 - x) + np.asarray(top) * x).astype(np.float32)
 
 
+LUT_STEP = 0.02  # metres per entry of the lateral road profile
+
+
 def road_surface(road, t, s, depth, px_lat, px_long) -> np.ndarray:
     """(n, 3) colours of ground points at road coordinates ``(t, s)`` (metres).
+
+    Everything that varies only across the road (asphalt or verge colour,
+    darker wheel tracks, which painted line is near) comes from a lateral
+    look-up table; the rest is evaluated per pixel.
 
     Args:
       road: the scene's :class:`~gac_jax.data.synthetic.scene.Road`.
       t, s: (n,) lateral / along-road positions; depth: (n,) camera depth.
       px_lat, px_long: (n,) ground size of one pixel across / along the road.
     """
-    fade = np.clip(6.0 / depth, 0.15, 1.0)
-    grain = lookup("fine", s, t, 24.0) * fade
-    blotch = lookup("coarse", s, t, 1.5)
-    mid = lookup("medium", s, t, 6.0)
-    on_road = (t >= road.left) & (t <= road.right)
-    shade = 1.0 + 0.07 * grain + 0.05 * blotch + 0.04 * mid * fade
-    # darker wheel tracks in every lane
+    lo = max(float(t.min()), -100.0) - LUT_STEP
+    hi = min(float(t.max()), 100.0) + LUT_STEP
+    grid = np.arange(lo, hi + LUT_STEP, LUT_STEP)
+    on_road = (grid >= road.left) & (grid <= road.right)
+    base = np.where(on_road[:, None], road.asphalt, road.verge_left).astype(np.float32)
+    base[grid > road.right] = road.verge_right
+    tracks = np.zeros_like(grid)
     for c in road.lane_centres:
         for off in (-0.8, 0.8):
-            shade -= 0.05 * np.exp(-(((t - c - off) / 0.35) ** 2))
-    color = np.where(on_road[:, None], np.asarray(road.asphalt), np.asarray(road.verge_left))
-    right = t > road.right
-    color[right] = road.verge_right
-    verge_tex = np.where(on_road, 0.0, 0.18 * mid + 0.12 * grain)
-    color = color * (shade + verge_tex)[:, None]
+            tracks += 0.05 * np.exp(-(((grid - c - off) / 0.35) ** 2))
+    base *= (1.0 - tracks)[:, None].astype(np.float32)
+    verge = np.where(on_road, 0.0, 1.0).astype(np.float32)
+    nearest_mark = np.full(len(grid), -1, np.int32)
+    for k, (tc, half, *_) in enumerate(road.markings):
+        nearest_mark[np.abs(grid - tc) < half + 0.6] = k
+    idx = ((np.clip(t, lo, hi) - lo) * np.float32(1.0 / LUT_STEP)).astype(np.int32)
+
+    fade = np.clip(6.0 / depth, 0.15, 1.0)
+    grain = lookup("fine", s, t, 24.0) * fade
+    patch = lookup("medium", s, t, 6.0)
+    shade = 1.0 + 0.07 * grain + 0.06 * patch + verge[idx] * (0.15 * patch + 0.12 * grain)
+    color = base[idx] * shade[:, None]
 
     paint = np.zeros_like(t)
-    for tc, half, period, dash, phase in road.markings:
-        near = np.abs(t - tc) < half + px_lat
-        if not near.any():
-            continue
-        idx = np.flatnonzero(near)
-        cov = coverage(half - np.abs(t[idx] - tc), px_lat[idx])
-        if period > 0:
-            ds = np.mod(s[idx] - phase, period)
-            cov *= coverage(np.minimum(ds, dash - ds), px_long[idx])
-        paint[idx] = np.maximum(paint[idx], cov)
+    mark = nearest_mark[idx]
+    sel = np.flatnonzero(mark >= 0)
+    if len(sel):
+        tc, half, period, dash, phase = (
+            road.markings[mark[sel], i].astype(np.float32) for i in range(5)
+        )
+        cov = coverage(half - np.abs(t[sel] - tc), px_lat[sel])
+        ds = np.mod(s[sel] - phase, np.maximum(period, 1e-3))
+        dashed = coverage(np.minimum(ds, dash - ds), px_long[sel])
+        paint[sel] = cov * np.where(period > 0, dashed, 1.0)
     if road.crosswalk is not None:
         s0, s1 = road.crosswalk
-        band = (s > s0 - 1) & (s < s1 + 1) & on_road
-        idx = np.flatnonzero(band)
-        cov = coverage(np.minimum(s[idx] - s0, s1 - s[idx]), px_long[idx])
-        dt = np.mod(t[idx], 1.0)
-        cov *= coverage(np.minimum(dt, 0.5 - dt), px_lat[idx])
-        paint[idx] = np.maximum(paint[idx], cov)
+        sel = np.flatnonzero((s > s0 - 1) & (s < s1 + 1) & on_road[idx])
+        cov = coverage(np.minimum(s[sel] - s0, s1 - s[sel]), px_long[sel])
+        dt = np.mod(t[sel], 1.0)
+        cov *= coverage(np.minimum(dt, 0.5 - dt), px_lat[sel])
+        paint[sel] = np.maximum(paint[sel], cov)
     paint *= road.paint_strength * (1.0 + 0.15 * grain)
     return color * (1.0 - paint[:, None]) + road.paint_color * paint[:, None]
+
+
+PAVING_TILE = 0.45  # metres
+
+
+@functools.cache
+def paving_texture() -> np.ndarray:
+    """(64, 64) float32 brightness of one square paving tile with grout lines at its border."""
+    x = (np.arange(64) + 0.5) / 64 * PAVING_TILE
+    edge = np.minimum(x, PAVING_TILE - x)
+    line = np.clip((edge - 0.012) / 0.008, 0.0, 1.0)
+    return (0.72 + 0.28 * np.minimum(line[:, None], line[None, :])).astype(np.float32)
 
 
 def textured_faces(solid: shapes.Solid, face: np.ndarray, local: np.ndarray, depth, base):
@@ -124,13 +149,13 @@ def textured_faces(solid: shapes.Solid, face: np.ndarray, local: np.ndarray, dep
         if code == shapes.FACADE:
             base[sel] = _facade(solid.params, face[sel], x, y, z, base[sel], fade[sel])
         elif code == shapes.PAVING:
-            tiles = 0.45
-            gt = np.minimum(np.mod(x, tiles), tiles - np.mod(x, tiles))
-            gs = np.minimum(np.mod(z, tiles), tiles - np.mod(z, tiles))
-            px = depth[sel, None] / 700.0
-            grout = 1.0 - 0.25 * (1.0 - coverage(np.minimum(gt, gs)[:, None] - 0.015, px))
-            tex = 1.0 + 0.08 * lookup("fine", x, z, 30.0)[:, None] * fade[sel, None]
-            base[sel] = base[sel] * grout * tex
+            tex = paving_texture()
+            ia = (x * np.float32(64 / PAVING_TILE)).astype(np.int32) & 63
+            ib = (z * np.float32(64 / PAVING_TILE)).astype(np.int32) & 63
+            contrast = np.clip(8.0 / depth[sel], 0.0, 1.0)  # grout lines fade out with distance
+            grout = 1.0 - (1.0 - tex[ia, ib]) * contrast
+            grain = 1.0 + 0.08 * lookup("fine", x, z, 30.0) * fade[sel]
+            base[sel] = base[sel] * (grout * grain)[:, None]
         elif code == shapes.FOLIAGE:
             leaf = lookup("medium", x + z, y, 5.0) + 0.6 * lookup("fine", z - x, y, 14.0)
             base[sel] = base[sel] * np.clip(0.8 + 0.25 * leaf, 0.35, 1.4)[:, None]

@@ -178,7 +178,8 @@ class _Canvas:
         if not win.any():
             return
         np.copyto(zb, rho, where=win)
-        np.copyto(self.ids[window], np.int16(object_id), where=win)
+        if object_id >= 0:  # (the background is drawn first, over ids that are all -1)
+            np.copyto(self.ids[window], np.int16(object_id), where=win)
         is_paving = solid.materials == shapes.PAVING
         kind = np.where(is_paving, RECEIVER, SURFACE).astype(np.uint8)
         np.copyto(self.kind[window], kind[face] if is_paving.any() else kind[0], where=win)
@@ -200,16 +201,20 @@ class _Canvas:
 
     def shade_ground(self) -> None:
         rr, cc = np.nonzero(self.kind == GROUND)
-        rho = self.zbuf[rr, cc]
         cam, scene = self.cam, self.scene
-        pts = _points(cam, cc.astype(np.float32), rr.astype(np.float32), rho)
-        road = scene.to_road(pts).astype(np.float32)
-        depth = 1.0 / rho
+        depth = 1.0 / self.zbuf[rr, cc]
+        u, v = cc.astype(np.float32), rr.astype(np.float32)
+        # road coordinates of the ground points: origin + (R^T M^-1 [u, v, 1]) * depth
+        R = scene.road_rotation
+        A = (R.T @ cam.Minv).astype(np.float32)
+        o = (R.T @ (cam.C - scene.road_translation)).astype(np.float32)
+        t = o[0] + (A[0, 0] * u + A[0, 1] * v + A[0, 2]) * depth
+        s = o[2] + (A[2, 0] * u + A[2, 1] * v + A[2, 2]) * depth
         fx, fy = cam.P[0, 0], cam.P[1, 1]
-        px_lat = depth / fx
+        px_lat = depth * np.float32(1.0 / fx)
         # along the road one pixel spans depth^2 / (f h) metres of ground
-        px_long = np.maximum(depth * depth / (fy * scene.camera_height), px_lat)
-        col = materials.road_surface(scene.road, road[:, 0], road[:, 2], depth, px_lat, px_long)
+        px_long = np.maximum(depth * px_lat * np.float32(fx / (fy * scene.camera_height)), px_lat)
+        col = materials.road_surface(scene.road, t, s, depth, px_lat, px_long)
         light = scene.ambient + (1.0 - scene.ambient) * max(-scene.ground_normal @ scene.sun, 0.0)
         self.image[rr, cc] = col * np.float32(light)
 

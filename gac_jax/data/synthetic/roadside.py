@@ -45,6 +45,9 @@ class Footprint:
     def overlaps(self, other: Footprint, margin: float) -> bool:
         """Separating-axis test of the two rectangles grown by ``margin``."""
         d = np.array([other.t - self.t, other.s - self.s])
+        reach = np.hypot(self.half_l, self.half_w) + np.hypot(other.half_l, other.half_w)
+        if abs(d[0]) > reach + 2 * margin or abs(d[1]) > reach + 2 * margin:
+            return False
         a_f, a_s = self.axes()
         b_f, b_s = other.axes()
         for axis in (a_f, a_s, b_f, b_s):

@@ -124,8 +124,17 @@ def box_vertices(x0, x1, y0, y1, z0, z1) -> np.ndarray:
     )
 
 
+_BOX_NORMALS = np.array([[1.0, 0, 0], [-1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]])
+
+
 def box(x0, x1, y0, y1, z0, z1, colors, materials=FLAT, params: tuple = ()) -> Solid:
-    return hexahedron(box_vertices(x0, x1, y0, y1, z0, z1), colors, materials, params)
+    """Axis-aligned box ``[x0, x1] x [y0, y1] x [z0, z1]`` (faces in :data:`HEX_FACES` order)."""
+    offsets = np.array([x1, -x0, -y0, y1, -z0, z1], dtype=np.float64)
+    colors = np.broadcast_to(np.asarray(colors, np.float32).reshape(-1, 3), (6, 3)).copy()
+    materials = np.broadcast_to(np.asarray(materials, np.int64), (6,)).copy()
+    frame = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
+    vertices = box_vertices(x0, x1, y0, y1, z0, z1)
+    return Solid(_BOX_NORMALS.copy(), offsets, vertices, colors, materials, frame, params)
 
 
 def sheared_box(bottom_xz, top_xz, y0, y1, half_x, half_z, colors) -> Solid:

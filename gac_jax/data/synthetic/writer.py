@@ -29,6 +29,7 @@ import shutil
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from gac_jax.data import files
@@ -161,6 +162,22 @@ class _Job:
     split_of: dict[int, str]
 
 
+def _png(array: np.ndarray, png_filter: int, huffman_only: bool = False) -> bytes:
+    """PNG bytes at compression level 1 with a fixed row filter (BGR for colour).
+
+    Measured here: for the noisy colour renders a SUB filter with Huffman-only
+    coding is twice as fast as OpenCV's default and smaller; depth maps
+    compress best with UP (dense) or no filter (sparse).
+    """
+    params = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, png_filter]
+    if huffman_only:
+        params += [cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
+    ok, buf = cv2.imencode(".png", array, params)
+    if not ok:
+        raise ValueError(f"cannot encode an array of shape {array.shape} as PNG")
+    return buf.tobytes()
+
+
 def _write_frame(job: _Job, index: int) -> float:
     """Renders and writes frame ``index``; returns the seconds it took."""
     start = time.perf_counter()
@@ -172,16 +189,18 @@ def _write_frame(job: _Job, index: int) -> float:
     for cam in (2, 3):
         view = frame.views[cam]
         dense = files.depth_to_uint16(view.depth)
-        files.write_png(paths[f"dense_{cam}"], dense)
-        files.write_png(paths[f"sparse_{cam}"], np.where(frame.sparse[cam], dense, np.uint16(0)))
-        files.write_png(paths[f"image_{cam}"], view.image)
+        sparse = np.where(frame.sparse[cam], dense, np.uint16(0))
+        files.write_bytes_atomic(paths[f"dense_{cam}"], _png(dense, cv2.IMWRITE_PNG_FILTER_UP))
+        files.write_bytes_atomic(paths[f"sparse_{cam}"], _png(sparse, cv2.IMWRITE_PNG_FILTER_NONE))
+        image = cv2.cvtColor(view.image, cv2.COLOR_RGB2BGR)
+        files.write_bytes_atomic(
+            paths[f"image_{cam}"], _png(image, cv2.IMWRITE_PNG_FILTER_SUB, True)
+        )
         _link(paths[f"image_{cam}"], paths[f"raw_{cam}"])
     return time.perf_counter() - start
 
 
 def _init_worker() -> None:
-    import cv2
-
     cv2.setNumThreads(1)
 
 
