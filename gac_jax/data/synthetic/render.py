@@ -135,7 +135,12 @@ def _points(cam: Camera, u: np.ndarray, v: np.ndarray, rho: np.ndarray) -> np.nd
 
 
 class _Canvas:
-    """The frame buffers of one view while solids are composited."""
+    """The frame buffers of one view (deferred shading).
+
+    Drawing a solid only z-buffers it: per pixel the inverse depth, a global
+    face id (index into the faces of all drawn solids, -1 = ground or sky) and
+    the object id. :meth:`shade` then colours every pixel once.
+    """
 
     def __init__(self, scene: Scene, cam: Camera):
         H, W = cam.size
@@ -149,13 +154,10 @@ class _Canvas:
         ground_rho = (coef[1] * v + coef[2]).astype(np.float32)
         ground_rho[ground_rho <= 0] = 0.0
         self.zbuf = np.repeat(ground_rho[:, None], W, axis=1)
-        self.kind = np.where(self.zbuf > 0, GROUND, SKY).astype(np.uint8)
-        ray = (cam.Minv @ np.stack([np.full(H, cam.P[0, 2]), v, np.ones(H)])).T
-        level = ray @ scene.road_rotation  # directions in the road frame (y down)
-        elevation = np.arctan2(-level[:, 1], np.hypot(level[:, 0], level[:, 2]))
-        sky = materials.sky_rows(elevation, scene.sky_top, scene.sky_horizon)
-        self.image = np.repeat(sky[:, None, :], W, axis=1)
+        self.gid = np.full((H, W), -1, np.int32)
         self.ids = np.full((H, W), -1, np.int16)
+        self.drawn: list[tuple[shapes.Solid, int, tuple]] = []  # (solid, first face id, rect)
+        self.num_faces = 0
 
     def face_colors(self, solid: shapes.Solid) -> np.ndarray:
         """(K, 3) Lambert-shaded colours of the solid's faces."""
@@ -178,26 +180,59 @@ class _Canvas:
         if not win.any():
             return
         np.copyto(zb, rho, where=win)
+        np.copyto(self.gid[window], np.add(face, self.num_faces, dtype=np.int32), where=win)
         if object_id >= 0:  # (the background is drawn first, over ids that are all -1)
             np.copyto(self.ids[window], np.int16(object_id), where=win)
-        is_paving = solid.materials == shapes.PAVING
-        kind = np.where(is_paving, RECEIVER, SURFACE).astype(np.uint8)
-        np.copyto(self.kind[window], kind[face] if is_paving.any() else kind[0], where=win)
-        table = self.face_colors(solid)
-        if np.all(solid.materials == shapes.FLAT):
-            np.copyto(self.image[window], table[face], where=win[:, :, None])
-            return
-        rr, cc = np.nonzero(win)
-        f = face[rr, cc]
-        r_win = rho[rr, cc]
-        pts = _points(self.cam, (cc + u0).astype(np.float32), (rr + v0).astype(np.float32), r_win)
-        frame = solid.frame.astype(np.float32)
-        d = [pts[:, i] - frame[i, 3] for i in range(3)]
-        local = np.stack(
-            [d[0] * frame[0, k] + d[1] * frame[1, k] + d[2] * frame[2, k] for k in range(3)], -1
+        self.drawn.append((solid, self.num_faces, sub))
+        self.num_faces += len(solid.offsets)
+
+    def shade(self) -> tuple[np.ndarray, np.ndarray]:
+        """Colours every pixel; returns the (H, W, 3) float32 image and the surface-kind map."""
+        H, W = self.cam.size
+        solids = [d[0] for d in self.drawn]
+        table = np.concatenate(
+            [self.face_colors(s) for s in solids] + [np.zeros((1, 3), np.float32)]
         )
-        col = materials.textured_faces(solid, f, local, 1.0 / r_win, table[f])
-        self.image[window][rr, cc] = col
+        image = table[self.gid]
+        receiver = np.concatenate([s.materials == shapes.PAVING for s in solids] + [[False]])
+        kind = np.where(receiver[self.gid], RECEIVER, SURFACE).astype(np.uint8)
+        background = self.gid < 0
+        kind[background & (self.zbuf > 0)] = GROUND
+        kind[background & (self.zbuf == 0)] = SKY
+        sky_px = kind == SKY
+        if sky_px.any():
+            image[sky_px] = self._sky_rows()[np.nonzero(sky_px)[0]]
+        for solid, first, (u0, u1, v0, v1) in self.drawn:
+            if np.all(solid.materials == shapes.FLAT):
+                continue
+            g = self.gid[v0 : v1 + 1, u0 : u1 + 1]
+            rr, cc = np.nonzero((g >= first) & (g < first + len(solid.offsets)))
+            if len(rr) == 0:
+                continue
+            f = g[rr, cc] - first
+            rr += v0
+            cc += u0
+            r_win = self.zbuf[rr, cc]
+            pts = _points(self.cam, cc.astype(np.float32), rr.astype(np.float32), r_win)
+            frame = solid.frame.astype(np.float32)
+            d = [pts[:, i] - frame[i, 3] for i in range(3)]
+            local = np.stack(
+                [d[0] * frame[0, k] + d[1] * frame[1, k] + d[2] * frame[2, k] for k in range(3)], -1
+            )
+            image[rr, cc] = materials.textured_faces(solid, f, local, 1.0 / r_win, image[rr, cc])
+        self.image, self.kind = image, kind
+        self.shade_ground()
+        self.shadows()
+        return self.image, self.kind
+
+    def _sky_rows(self) -> np.ndarray:
+        cam, scene = self.cam, self.scene
+        H = cam.size[0]
+        v = np.arange(H, dtype=np.float64)
+        ray = (cam.Minv @ np.stack([np.full(H, cam.P[0, 2]), v, np.ones(H)])).T
+        level = ray @ scene.road_rotation  # directions in the road frame (y down)
+        elevation = np.arctan2(-level[:, 1], np.hypot(level[:, 0], level[:, 2]))
+        return materials.sky_rows(elevation, scene.sky_top, scene.sky_horizon)
 
     def shade_ground(self) -> None:
         rr, cc = np.nonzero(self.kind == GROUND)
@@ -266,13 +301,12 @@ def render_view(
         for part in obj.parts:
             canvas.draw(part, i, rect, union)
         silhouette[i] = int(union.sum())
-    canvas.shade_ground()
-    canvas.shadows()
+    color, kind = canvas.shade()
     depth = np.zeros(cam.size, np.float32)
     valid = canvas.zbuf > np.float32(1.0 / MAX_DEPTH)
     depth[valid] = 1.0 / canvas.zbuf[valid]
-    image = _expose(canvas.image, scene, rng)
-    return ViewRender(image, depth, canvas.ids, silhouette, canvas.kind)
+    image = _expose(color, scene, rng)
+    return ViewRender(image, depth, canvas.ids, silhouette, kind)
 
 
 def silhouette_outside(obj_parts, P: np.ndarray, image_size, max_samples: int = 60000) -> float:
