@@ -387,6 +387,10 @@ def test_idempotent_and_resume(dataset, tmp_path):
         if untouched and p.name != "synthetic.json" and "calib_" not in p.name:
             assert p.stat().st_mtime_ns == stamp, p
 
+    (root / "ImageSets" / "val.txt").unlink()  # a dataset-level file is restored too
+    assert generate_dataset(root, N, SEED, **ARGS).generated == 0
+    assert _tree_digest(root) == before
+
     # an interrupted run: marker present, description missing, a temporary file, a lost label
     (root / "synthetic.json").unlink()
     (root / ".synthetic_in_progress.json").write_text((dataset / "synthetic.json").read_text())

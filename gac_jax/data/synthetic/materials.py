@@ -26,7 +26,7 @@ def noise_tiles() -> dict[str, np.ndarray]:
     freq = np.fft.fftfreq(TILE)
     radius = np.hypot(freq[:, None], freq[None, :])
     tiles = {}
-    for name, cutoff in (("fine", 0.25), ("medium", 0.06), ("coarse", 0.015)):
+    for name, cutoff in (("fine", 0.25), ("medium", 0.06)):
         spectrum = np.fft.fft2(rng.standard_normal((TILE, TILE)))
         field = np.real(np.fft.ifft2(spectrum * np.exp(-((radius / cutoff) ** 2))))
         field = (field - field.mean()) / field.std()
@@ -174,9 +174,8 @@ def textured_faces(solid: shapes.Solid, face: np.ndarray, local: np.ndarray, dep
 def _facade(params, face, x, y, z, base, fade):
     """Windows on a building wall. Texture frame = road frame: x lateral, y down, z along road."""
     ground_y, floor_h, spacing, win_w, win_h, glass_r, glass_g, glass_b, salt = params[:9]
-    along = np.where(
-        face <= shapes.BACK, z, x
-    )  # walls facing the road run along z, end walls along x
+    # walls facing the road (front/back faces) run along z, end walls along x
+    along = np.where(face <= shapes.BACK, z, x)
     height = ground_y - y
     a = along * np.float32(1.0 / spacing)
     b = height * np.float32(1.0 / floor_h)

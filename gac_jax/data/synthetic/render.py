@@ -59,12 +59,14 @@ class Camera:
     P: np.ndarray  # (3, 4)
     size: tuple[int, int]  # (H, W)
 
-    @property
+    @functools.cached_property
     def Minv(self) -> np.ndarray:
+        """(3, 3) inverse of ``P[:, :3]``: ``r = Minv @ [u, v, 1]`` is the ray per unit depth."""
         return np.linalg.inv(self.P[:, :3])
 
-    @property
+    @functools.cached_property
     def C(self) -> np.ndarray:
+        """(3,) optical centre."""
         return camera_center(self.P)
 
 
@@ -111,6 +113,9 @@ def cast(solid: shapes.Solid, cam: Camera, rect, stride: int = 1):
     V = np.arange(v0, v1 + 1, stride, dtype=np.float32)[:, None]
     front = np.flatnonzero(num < 0)
     back = np.flatnonzero(num >= 0)
+    if len(front) == 0:  # the camera is inside the solid: nothing of it is seen from outside
+        shape = (len(V), U.shape[1])
+        return np.zeros(shape, bool), np.zeros(shape, np.float32), np.zeros(shape, np.int8)
     cf = coef[front].astype(np.float32)
     rho = cf[0, 0] * U + (cf[0, 1] * V + cf[0, 2])
     face = np.full(rho.shape, front[0], np.int8)

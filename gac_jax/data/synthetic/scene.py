@@ -241,10 +241,9 @@ class _Builder:
             for _ in range(int(rng.integers(0, 3))):
                 self._place("Car", FAR_RANGE)
 
-    def _propose(self, cls, dims):
+    def _propose(self, cls):
         """A position ``(t, s)``, heading ``psi`` (road frame) and support height for ``cls``."""
         rng, h = self.rng, self.h
-        _, w, l = dims
         s = rng.uniform(2.0, 100.0)
         if cls == "Car":
             if self.parking and rng.random() < 0.4:
@@ -290,7 +289,7 @@ class _Builder:
         for _ in range(tries):
             dims = np.array([_normal(rng, m, sd) for m, sd in CLASS_SIZES[cls]])
             dims = np.round(dims, 2)
-            t, s, psi, support = self._propose(cls, dims)
+            t, s, psi, support = self._propose(cls)
             foot = Footprint(t, s, dims[2] / 2, dims[1] / 2, psi)
             margin = 0.3 if cls == "Car" else 0.15
             if any(foot.overlaps(o, margin) for o in self.obstacles):

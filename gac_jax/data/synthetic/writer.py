@@ -316,13 +316,20 @@ def generate_dataset(
         if state == "fresh"
         or not all(p.exists() for p in frame_paths(root, i, rigs[i], split_of[i]).values())
     ]
-    if state == "done" and not todo:
+    dataset_files = [root / "ImageSets" / f"{name}.txt" for name in (*splits, "trainval")]
+    dataset_files += [
+        root / "depth" / "raw" / rig.date / name
+        for rig in calibration.RIGS
+        for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt")
+    ]
+    if state == "done" and not todo and all(p.exists() for p in dataset_files):
         return GenerationResult(root, num_frames, 0, [])
     root.mkdir(parents=True, exist_ok=True)
     if not os.access(root, os.W_OK):
         raise PermissionError(f"{root}: directory is not writable")
     with files.atomic_write(root / MARKER) as f:
         json.dump(spec.to_json(), f, indent=1)
+    (root / DONE).unlink(missing_ok=True)  # incomplete until everything is back
     _remove_temporaries(root)
     seconds = _run(_Job(str(root), spec, split_of), todo, workers, progress)
 
