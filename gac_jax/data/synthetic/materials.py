@@ -172,7 +172,12 @@ def textured_faces(solid: shapes.Solid, face: np.ndarray, local: np.ndarray, dep
 
 
 def _facade(params, face, x, y, z, base, fade):
-    """Windows on a building wall. Texture frame = road frame: x lateral, y down, z along road."""
+    """Windows on a building wall. Texture frame = road frame: x lateral, y down, z along road.
+
+    ``params``: ground y, floor height, window spacing, window width and height
+    (fractions of a cell), glass RGB, hash salt, and optionally a shop flag
+    (ground-floor shop windows).
+    """
     ground_y, floor_h, spacing, win_w, win_h, glass_r, glass_g, glass_b, salt = params[:9]
     # walls facing the road (front/back faces) run along z, end walls along x
     along = np.where(face <= shapes.BACK, z, x)
@@ -186,6 +191,11 @@ def _facade(params, face, x, y, z, base, fade):
     out = base * (1.0 + 0.06 * lookup("medium", along, height, 8.0) * fade)[:, None]
     ledge = (np.abs(fh - (0.55 - win_h / 2)) < 0.04 / floor_h) & upper
     out[ledge] *= 0.8
+    plinth = height < 0.4
+    out[plinth] *= 0.7
+    if len(params) > 9 and params[9] > 0:  # shop windows on the ground floor
+        shop_a = np.abs(fa - 0.5) < 0.42
+        inside |= shop_a & (height > 0.5) & (height < 2.3)
     idx = np.flatnonzero(inside)
     lit = hash01(col[idx], row[idx], int(salt))
     glass = np.array([glass_r, glass_g, glass_b], np.float32) * (0.6 + 0.8 * lit[:, None])

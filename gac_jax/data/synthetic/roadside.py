@@ -116,6 +116,7 @@ def _buildings(b, side, front_t):
             rng.uniform(0.4, 0.6),
             *glass,
             int(rng.integers(1 << 20)),
+            float(rng.random() < 0.4),  # shop windows on the ground floor
         )
         mats = np.full(6, shapes.FACADE)
         mats[shapes.TOP] = shapes.FLAT
