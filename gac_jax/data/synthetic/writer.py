@@ -38,7 +38,7 @@ from gac_jax.data.synthetic import calibration
 from gac_jax.data.synthetic.frame import frame_rig, make_frame
 from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 1  # bump whenever the generated content changes (it keys idempotence)
 MARKER = ".synthetic_in_progress.json"
 DONE = "synthetic.json"
 OWNED = ("training", "ImageSets", "depth")  # what a fresh start may delete (only in our own dirs)
