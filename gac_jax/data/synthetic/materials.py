@@ -1,0 +1,222 @@
+"""Surface appearance: sky, road surface and textured faces, as functions of 3D position.
+
+Textures are looked up by metric surface coordinates, so their detail shrinks
+with distance exactly as the geometry does (a depth cue, like real asphalt
+grain). Fine texture is faded with distance and painted lines are given soft,
+coverage-based edges, so far surfaces do not alias into noise.
+
+All colours are float32 RGB in [0, 1] before the camera's exposure.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from gac_jax.data.synthetic import shapes
+
+TILE = 256  # noise tiles are TILE x TILE and wrap around
+
+
+@functools.cache
+def noise_tiles() -> dict[str, np.ndarray]:
+    """Periodic band-limited noise tiles (float32, zero mean, unit std), equal in every process."""
+    rng = np.random.default_rng(20210401)
+    freq = np.fft.fftfreq(TILE)
+    radius = np.hypot(freq[:, None], freq[None, :])
+    tiles = {}
+    for name, cutoff in (("fine", 0.25), ("medium", 0.06)):
+        spectrum = np.fft.fft2(rng.standard_normal((TILE, TILE)))
+        field = np.real(np.fft.ifft2(spectrum * np.exp(-((radius / cutoff) ** 2))))
+        field = (field - field.mean()) / field.std()
+        tiles[name] = field.astype(np.float32)
+    return tiles
+
+
+def lookup(tile: str, a: np.ndarray, b: np.ndarray, texels_per_metre: float) -> np.ndarray:
+    """Samples a noise tile at metric coordinates ``(a, b)`` (nearest texel, wrapping)."""
+    t = noise_tiles()[tile]
+    ia = (a * texels_per_metre).astype(np.int32) & (TILE - 1)
+    ib = (b * texels_per_metre).astype(np.int32) & (TILE - 1)
+    return t[ia, ib]
+
+
+def coverage(distance_inside: np.ndarray, pixel_size: np.ndarray) -> np.ndarray:
+    """Fraction of a pixel covered by a shape, from the signed distance to its edge (metres)."""
+    return np.clip(distance_inside / pixel_size + 0.5, 0.0, 1.0)
+
+
+def hash01(i: np.ndarray, j: np.ndarray, salt: int) -> np.ndarray:
+    """Deterministic pseudo-random values in [0, 1) for integer grid cells ``(i, j)``."""
+    h = (i.astype(np.int64) * 73856093) ^ (j.astype(np.int64) * 19349663) ^ (salt * 83492791)
+    h = (h ^ (h >> 13)) * 1274126177
+    return ((h >> 8) & 0xFFFF).astype(np.float32) / 65536.0
+
+
+def sky_rows(elevation: np.ndarray, top, horizon) -> np.ndarray:
+    """(H, 3) sky colour per image row from the ray elevation (radians, up positive)."""
+    x = np.clip(elevation / 0.45, 0.0, 1.0)[:, None] ** 0.7
+    return (np.asarray(horizon) * (1.0 - x) + np.asarray(top) * x).astype(np.float32)
+
+
+LUT_STEP = 0.02  # metres per entry of the lateral road profile
+
+
+def road_surface(road, t, s, depth, px_lat, px_long) -> np.ndarray:
+    """(n, 3) colours of ground points at road coordinates ``(t, s)`` (metres).
+
+    Everything that varies only across the road (asphalt or verge colour,
+    darker wheel tracks, which painted line is near) comes from a lateral
+    look-up table; the rest is evaluated per pixel.
+
+    Args:
+      road: the scene's :class:`~gac_jax.data.synthetic.scene.Road`.
+      t, s: (n,) lateral / along-road positions; depth: (n,) camera depth.
+      px_lat, px_long: (n,) ground size of one pixel across / along the road.
+    """
+    lo = max(float(t.min()), -100.0) - LUT_STEP
+    hi = min(float(t.max()), 100.0) + LUT_STEP
+    grid = np.arange(lo, hi + LUT_STEP, LUT_STEP)
+    on_road = (grid >= road.left) & (grid <= road.right)
+    base = np.where(on_road[:, None], road.asphalt, road.verge_left).astype(np.float32)
+    base[grid > road.right] = road.verge_right
+    tracks = np.zeros_like(grid)
+    for c in road.lane_centres:
+        for off in (-0.8, 0.8):
+            tracks += 0.05 * np.exp(-(((grid - c - off) / 0.35) ** 2))
+    base *= (1.0 - tracks)[:, None].astype(np.float32)
+    verge = np.where(on_road, 0.0, 1.0).astype(np.float32)
+    nearest_mark = np.full(len(grid), -1, np.int32)
+    for k, (tc, half, *_) in enumerate(road.markings):
+        nearest_mark[np.abs(grid - tc) < half + 0.6] = k
+    idx = ((np.clip(t, lo, hi) - lo) * np.float32(1.0 / LUT_STEP)).astype(np.int32)
+
+    fade = np.clip(6.0 / depth, 0.15, 1.0)
+    grain = lookup("fine", s, t, 24.0) * fade
+    patch = lookup("medium", s, t, 6.0)
+    shade = 1.0 + 0.07 * grain + 0.06 * patch + verge[idx] * (0.15 * patch + 0.12 * grain)
+    color = base[idx] * shade[:, None]
+
+    paint = np.zeros_like(t)
+    mark = nearest_mark[idx]
+    sel = np.flatnonzero(mark >= 0)
+    if len(sel):
+        tc, half, period, dash, phase = (
+            road.markings[mark[sel], i].astype(np.float32) for i in range(5)
+        )
+        cov = coverage(half - np.abs(t[sel] - tc), px_lat[sel])
+        ds = np.mod(s[sel] - phase, np.maximum(period, 1e-3))
+        dashed = coverage(np.minimum(ds, dash - ds), px_long[sel])
+        paint[sel] = cov * np.where(period > 0, dashed, 1.0)
+    if road.crosswalk is not None:
+        s0, s1 = road.crosswalk
+        sel = np.flatnonzero((s > s0 - 1) & (s < s1 + 1) & on_road[idx])
+        cov = coverage(np.minimum(s[sel] - s0, s1 - s[sel]), px_long[sel])
+        dt = np.mod(t[sel], 1.0)
+        cov *= coverage(np.minimum(dt, 0.5 - dt), px_lat[sel])
+        paint[sel] = np.maximum(paint[sel], cov)
+    paint *= road.paint_strength * (1.0 + 0.15 * grain)
+    return color * (1.0 - paint[:, None]) + road.paint_color * paint[:, None]
+
+
+PAVING_TILE = 0.45  # metres
+
+
+@functools.cache
+def paving_texture() -> np.ndarray:
+    """(64, 64) float32 brightness of one square paving tile with grout lines at its border."""
+    x = (np.arange(64) + 0.5) / 64 * PAVING_TILE
+    edge = np.minimum(x, PAVING_TILE - x)
+    line = np.clip((edge - 0.012) / 0.008, 0.0, 1.0)
+    return (0.72 + 0.28 * np.minimum(line[:, None], line[None, :])).astype(np.float32)
+
+
+def textured_faces(solid: shapes.Solid, face: np.ndarray, local: np.ndarray, depth, base):
+    """Applies ``solid``'s textures to some of its pixels.
+
+    Args:
+      face: (n,) face index of each pixel; local: (n, 3) the pixel's 3D point in
+        the solid's texture frame; depth: (n,) camera depth; base: (n, 3) flat
+        shaded colours (modified and returned).
+    """
+    codes = set(solid.materials.tolist()) - {shapes.FLAT}
+    mats = solid.materials[face] if len(codes) > 1 or shapes.FLAT in solid.materials else None
+    fade = np.clip(5.0 / depth, 0.2, 1.0)
+    for code in sorted(codes):
+        sel = slice(None) if mats is None else np.flatnonzero(mats == code)
+        x, y, z = local[sel, 0], local[sel, 1], local[sel, 2]
+        if code == shapes.FACADE:
+            base[sel] = _facade(solid.params, face[sel], x, y, z, base[sel], fade[sel])
+        elif code == shapes.PAVING:
+            tex = paving_texture()
+            ia = (x * np.float32(64 / PAVING_TILE)).astype(np.int32) & 63
+            ib = (z * np.float32(64 / PAVING_TILE)).astype(np.int32) & 63
+            contrast = np.clip(8.0 / depth[sel], 0.0, 1.0)  # grout lines fade out with distance
+            grout = 1.0 - (1.0 - tex[ia, ib]) * contrast
+            grain = 1.0 + 0.08 * lookup("fine", x, z, 30.0) * fade[sel]
+            base[sel] = base[sel] * (grout * grain)[:, None]
+        elif code == shapes.FOLIAGE:
+            leaf = lookup("medium", x + z, y, 5.0) + 0.6 * lookup("fine", z - x, y, 14.0)
+            base[sel] = base[sel] * np.clip(0.8 + 0.25 * leaf, 0.35, 1.4)[:, None]
+        elif code == shapes.ROUGH:
+            base[sel] = (
+                base[sel] * (1.0 + 0.12 * lookup("fine", x + z, y, 40.0) * fade[sel])[:, None]
+            )
+        elif code == shapes.GLASS:
+            # sky reflected in the upper part of windows
+            base[sel] = base[sel] + np.float32(0.06) * np.clip(-y - 1.0, 0.0, 1.0)[:, None]
+        elif code in (shapes.HEADLIGHTS, shapes.TAILLIGHTS):
+            base[sel] = _lamps(solid.params, code, y, z, base[sel])
+    return base
+
+
+def _facade(params, face, x, y, z, base, fade):
+    """Windows on a building wall. Texture frame = road frame: x lateral, y down, z along road.
+
+    ``params``: ground y, floor height, window spacing, window width and height
+    (fractions of a cell), glass RGB, hash salt, and optionally a shop flag
+    (ground-floor shop windows).
+    """
+    ground_y, floor_h, spacing, win_w, win_h, glass_r, glass_g, glass_b, salt = params[:9]
+    # walls facing the road (front/back faces) run along z, end walls along x
+    along = np.where(face <= shapes.BACK, z, x)
+    height = ground_y - y
+    a = along * np.float32(1.0 / spacing)
+    b = height * np.float32(1.0 / floor_h)
+    col, row = np.floor(a), np.floor(b)
+    fa, fh = a - col, b - row
+    upper = height > 2.6  # no windows on the ground floor
+    inside = (np.abs(fa - 0.5) < win_w / 2) & (np.abs(fh - 0.55) < win_h / 2) & upper
+    out = base * (1.0 + 0.06 * lookup("medium", along, height, 8.0) * fade)[:, None]
+    ledge = (np.abs(fh - (0.55 - win_h / 2)) < 0.04 / floor_h) & upper
+    out[ledge] *= 0.8
+    plinth = height < 0.4
+    out[plinth] *= 0.7
+    if len(params) > 9 and params[9] > 0:  # shop windows on the ground floor
+        shop_a = np.abs(fa - 0.5) < 0.42
+        inside |= shop_a & (height > 0.5) & (height < 2.3)
+    idx = np.flatnonzero(inside)
+    lit = hash01(col[idx], row[idx], int(salt))
+    glass = np.array([glass_r, glass_g, glass_b], np.float32) * (0.6 + 0.8 * lit[:, None])
+    tint = base[idx] / np.maximum(base[idx].max(axis=1, keepdims=True), 1e-3)
+    out[idx] = glass * (0.5 + 0.5 * tint)
+    return out
+
+
+def _lamps(params, code, y, z, base):
+    """Head/tail lights and a number plate on a car body's end faces (object frame)."""
+    nose_y, tail_y, half_w = params[:3]
+    top = nose_y if code == shapes.HEADLIGHTS else tail_y
+    band = (y > top + 0.03) & (y < top + 0.13)
+    side = (np.abs(z) > 0.55 * half_w) & (np.abs(z) < 0.93 * half_w)
+    out = base.copy()
+    if code == shapes.HEADLIGHTS:
+        out[band & side] = (0.85, 0.85, 0.8)
+        grille = (y > top + 0.05) & (y < top + 0.16) & (np.abs(z) < 0.4 * half_w)
+        out[grille] *= 0.3
+    else:
+        out[band & side] = (0.7, 0.05, 0.04)
+        plate = (y > top + 0.17) & (y < top + 0.28) & (np.abs(z) < 0.28 * half_w)
+        out[plate] = (0.85, 0.85, 0.8)
+    return out

@@ -1,0 +1,365 @@
+"""Ray-casting rasteriser for scenes of convex solids over a ground plane, with a z-buffer.
+
+Every pixel centre ``(u, v)`` (integer coordinates, KITTI's convention) sees the
+ray ``X(w) = C + w r(u, v)`` with ``r = M^-1 [u, v, 1]`` (``P = [M | p]``,
+``C`` the optical centre) and ``w`` the camera's depth (``z`` of that camera).
+For a plane ``n . X = d`` the inverse depth ``rho = 1 / w`` of the intersection
+is affine in ``(u, v)``: ``rho = (n . r) / (d - n . C)``. A convex solid is the
+intersection of half-spaces, so a ray is inside it for
+``max_back q_k <= rho <= min_front q_k`` (front: faces the camera sees from
+outside), and the visible point is ``rho = min_front q_k``. This gives exact
+per-pixel depth and exact pixel-centre coverage with two array operations per
+face, evaluated only inside the solid's screen rectangle.
+
+The z-buffer stores inverse depth; the ground plane seeds it and the sky is 0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import cv2
+import numpy as np
+
+from gac_jax.data.synthetic import materials, shapes
+from gac_jax.data.synthetic.scene import Scene
+from gac_jax.geometry import camera_center, project
+
+NEAR = 0.05  # metres
+MAX_DEPTH = 250.0  # depth maps hold 0 beyond this (16-bit KITTI PNGs saturate at 256 m)
+SKY, GROUND, RECEIVER, SURFACE = 0, 1, 2, 3  # surface kinds (receivers take shadows)
+
+
+@dataclasses.dataclass
+class ViewRender:
+    """One camera's render of a scene.
+
+    Attributes:
+      image: (H, W, 3) uint8 RGB.
+      depth: (H, W) float32 depth (z of this camera) in metres, 0 = sky / beyond MAX_DEPTH.
+      object_ids: (H, W) int16 index into ``scene.objects`` of the visible object, -1 elsewhere.
+      silhouette_px: (N,) pixels of each object's own silhouette inside the image
+        (as if nothing else were there).
+      surface: (H, W) uint8 what each pixel shows: ``SKY``, ``GROUND`` (the road
+        plane), ``RECEIVER`` (sidewalk tops) or ``SURFACE`` (any other solid).
+    """
+
+    image: np.ndarray
+    depth: np.ndarray
+    object_ids: np.ndarray
+    silhouette_px: np.ndarray
+    surface: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class Camera:
+    """A projection and the quantities the ray caster needs."""
+
+    P: np.ndarray  # (3, 4)
+    size: tuple[int, int]  # (H, W)
+
+    @functools.cached_property
+    def Minv(self) -> np.ndarray:
+        """(3, 3) inverse of ``P[:, :3]``: ``r = Minv @ [u, v, 1]`` is the ray per unit depth."""
+        return np.linalg.inv(self.P[:, :3])
+
+    @functools.cached_property
+    def C(self) -> np.ndarray:
+        """(3,) optical centre."""
+        return camera_center(self.P)
+
+
+def screen_rect(vertices: np.ndarray, P: np.ndarray, bounds) -> tuple[int, int, int, int] | None:
+    """Integer pixel rectangle ``(u0, u1, v0, v1)`` (inclusive) covering a convex solid.
+
+    The part of the solid behind the near plane is cut off (the crossings of
+    all vertex pairs bound the section). ``bounds = (u_min, u_max, v_min, v_max)``
+    clips the result; None when the solid is not in front or misses ``bounds``.
+    """
+    uv, w = project(vertices, P)
+    front = w > NEAR
+    pts = uv[front]
+    if not front.all():
+        i, j = np.triu_indices(len(vertices), 1)
+        cross = (w[i] - NEAR) * (w[j] - NEAR) < 0
+        if cross.any():
+            a, b = vertices[i[cross]], vertices[j[cross]]
+            t = (NEAR - w[i[cross]]) / (w[j[cross]] - w[i[cross]])
+            pts = np.concatenate([pts, project(a + t[:, None] * (b - a), P)[0]])
+    if len(pts) == 0:
+        return None
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    u0, u1 = max(int(np.ceil(lo[0])), bounds[0]), min(int(np.floor(hi[0])), bounds[1])
+    v0, v1 = max(int(np.ceil(lo[1])), bounds[2]), min(int(np.floor(hi[1])), bounds[3])
+    if u0 > u1 or v0 > v1:
+        return None
+    return u0, u1, v0, v1
+
+
+def cast(solid: shapes.Solid, cam: Camera, rect, stride: int = 1):
+    """Casts the rays of the pixels in ``rect`` (every ``stride``-th) against ``solid``.
+
+    Returns:
+      hit: (h, w) bool, the ray meets the solid in front of the camera;
+      rho: (h, w) float32 inverse depth of the visible point (valid where hit);
+      face: (h, w) index of the visible face (valid where hit).
+    """
+    u0, u1, v0, v1 = rect
+    C, Minv = cam.C, cam.Minv
+    num = solid.offsets - solid.normals @ C  # < 0: camera outside that face's half-space
+    coef = (solid.normals @ Minv) / num[:, None]  # q_k(u, v) = coef_k . [u, v, 1]
+    U = np.arange(u0, u1 + 1, stride, dtype=np.float32)[None, :]
+    V = np.arange(v0, v1 + 1, stride, dtype=np.float32)[:, None]
+    front = np.flatnonzero(num < 0)
+    back = np.flatnonzero(num >= 0)
+    if len(front) == 0:  # the camera is inside the solid: nothing of it is seen from outside
+        shape = (len(V), U.shape[1])
+        return np.zeros(shape, bool), np.zeros(shape, np.float32), np.zeros(shape, np.int8)
+    cf = coef[front].astype(np.float32)
+    rho = cf[0, 0] * U + (cf[0, 1] * V + cf[0, 2])
+    face = np.full(rho.shape, front[0], np.int8)
+    for k in range(1, len(front)):
+        q = cf[k, 0] * U + (cf[k, 1] * V + cf[k, 2])
+        nearer = q < rho
+        np.copyto(rho, q, where=nearer)
+        np.copyto(face, np.int8(front[k]), where=nearer)
+    hit = rho > 0
+    cb = coef[back].astype(np.float32)
+    for k in range(len(back)):
+        hit &= rho >= cb[k, 0] * U + (cb[k, 1] * V + cb[k, 2])
+    return hit, rho, face
+
+
+def _points(cam: Camera, u: np.ndarray, v: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """(n, 3) float32 camera-frame points seen at pixels ``(u, v)`` with inverse depth ``rho``."""
+    Minv, C = cam.Minv.astype(np.float32), cam.C.astype(np.float32)
+    w = 1.0 / rho
+    cols = [C[i] + (Minv[i, 0] * u + Minv[i, 1] * v + Minv[i, 2]) * w for i in range(3)]
+    return np.stack(cols, axis=-1)
+
+
+class _Canvas:
+    """The frame buffers of one view (deferred shading).
+
+    Drawing a solid only z-buffers it: per pixel the inverse depth, a global
+    face id (index into the faces of all drawn solids, -1 = ground or sky) and
+    the object id. :meth:`shade` then colours every pixel once.
+    """
+
+    def __init__(self, scene: Scene, cam: Camera):
+        H, W = cam.size
+        self.scene, self.cam = scene, cam
+        self.bounds = (0, W - 1, 0, H - 1)
+        v = np.arange(H, dtype=np.float64)
+        n, h = scene.ground_normal, scene.camera_height
+        coef = (n @ cam.Minv) / (h - n @ cam.C)  # ground rho = coef . [u, v, 1]
+        # no camera roll: the ground's inverse depth is the same along each row
+        assert abs(coef[0]) < 1e-12, "camera roll is not supported"
+        ground_rho = (coef[1] * v + coef[2]).astype(np.float32)
+        ground_rho[ground_rho <= 0] = 0.0
+        self.zbuf = np.repeat(ground_rho[:, None], W, axis=1)
+        self.gid = np.full((H, W), -1, np.int32)
+        self.ids = np.full((H, W), -1, np.int16)
+        self.drawn: list[tuple[shapes.Solid, int, tuple]] = []  # (solid, first face id, rect)
+        self.num_faces = 0
+
+    def face_colors(self, solid: shapes.Solid) -> np.ndarray:
+        """(K, 3) Lambert-shaded colours of the solid's faces."""
+        s = self.scene
+        diffuse = np.maximum(solid.normals @ s.sun, 0.0) * (1.0 - s.ambient)
+        return (solid.colors * (s.ambient + diffuse)[:, None]).astype(np.float32)
+
+    def draw(self, solid: shapes.Solid, object_id: int = -1, rect=None, union=None) -> None:
+        """Z-buffers ``solid``; ``union`` (bool array over ``rect``) gathers its coverage."""
+        sub = screen_rect(solid.vertices, self.cam.P, self.bounds if rect is None else rect)
+        if sub is None:
+            return
+        u0, u1, v0, v1 = sub
+        hit, rho, face = cast(solid, self.cam, sub)
+        if union is not None:
+            union[v0 - rect[2] : v1 - rect[2] + 1, u0 - rect[0] : u1 - rect[0] + 1] |= hit
+        window = (slice(v0, v1 + 1), slice(u0, u1 + 1))
+        zb = self.zbuf[window]
+        win = hit & (rho > zb)
+        if not win.any():
+            return
+        np.copyto(zb, rho, where=win)
+        np.copyto(self.gid[window], np.add(face, self.num_faces, dtype=np.int32), where=win)
+        if object_id >= 0:  # (the background is drawn first, over ids that are all -1)
+            np.copyto(self.ids[window], np.int16(object_id), where=win)
+        self.drawn.append((solid, self.num_faces, sub))
+        self.num_faces += len(solid.offsets)
+
+    def shade(self) -> tuple[np.ndarray, np.ndarray]:
+        """Colours every pixel; returns the (H, W, 3) float32 image and the surface-kind map."""
+        H, W = self.cam.size
+        solids = [d[0] for d in self.drawn]
+        table = np.concatenate(
+            [self.face_colors(s) for s in solids] + [np.zeros((1, 3), np.float32)]
+        )
+        image = table[self.gid]
+        receiver = np.concatenate([s.materials == shapes.PAVING for s in solids] + [[False]])
+        kind = np.where(receiver[self.gid], RECEIVER, SURFACE).astype(np.uint8)
+        background = self.gid < 0
+        kind[background & (self.zbuf > 0)] = GROUND
+        kind[background & (self.zbuf == 0)] = SKY
+        sky_px = kind == SKY
+        if sky_px.any():
+            image[sky_px] = self._sky_rows()[np.nonzero(sky_px)[0]]
+        for solid, first, (u0, u1, v0, v1) in self.drawn:
+            if np.all(solid.materials == shapes.FLAT):
+                continue
+            g = self.gid[v0 : v1 + 1, u0 : u1 + 1]
+            rr, cc = np.nonzero((g >= first) & (g < first + len(solid.offsets)))
+            if len(rr) == 0:
+                continue
+            f = g[rr, cc] - first
+            rr += v0
+            cc += u0
+            r_win = self.zbuf[rr, cc]
+            pts = _points(self.cam, cc.astype(np.float32), rr.astype(np.float32), r_win)
+            frame = solid.frame.astype(np.float32)
+            d = [pts[:, i] - frame[i, 3] for i in range(3)]
+            local = np.stack(
+                [d[0] * frame[0, k] + d[1] * frame[1, k] + d[2] * frame[2, k] for k in range(3)], -1
+            )
+            image[rr, cc] = materials.textured_faces(solid, f, local, 1.0 / r_win, image[rr, cc])
+        self.image, self.kind = image, kind
+        self.shade_ground()
+        self.shadows()
+        return self.image, self.kind
+
+    def _sky_rows(self) -> np.ndarray:
+        cam, scene = self.cam, self.scene
+        H = cam.size[0]
+        v = np.arange(H, dtype=np.float64)
+        ray = (cam.Minv @ np.stack([np.full(H, cam.P[0, 2]), v, np.ones(H)])).T
+        level = ray @ scene.road_rotation  # directions in the road frame (y down)
+        elevation = np.arctan2(-level[:, 1], np.hypot(level[:, 0], level[:, 2]))
+        return materials.sky_rows(elevation, scene.sky_top, scene.sky_horizon)
+
+    def shade_ground(self) -> None:
+        rr, cc = np.nonzero(self.kind == GROUND)
+        cam, scene = self.cam, self.scene
+        depth = 1.0 / self.zbuf[rr, cc]
+        u, v = cc.astype(np.float32), rr.astype(np.float32)
+        # road coordinates of the ground points: origin + (R^T M^-1 [u, v, 1]) * depth
+        R = scene.road_rotation
+        A = (R.T @ cam.Minv).astype(np.float32)
+        o = (R.T @ (cam.C - scene.road_translation)).astype(np.float32)
+        t = o[0] + (A[0, 0] * u + A[0, 1] * v + A[0, 2]) * depth
+        s = o[2] + (A[2, 0] * u + A[2, 1] * v + A[2, 2]) * depth
+        fx, fy = cam.P[0, 0], cam.P[1, 1]
+        px_lat = depth * np.float32(1.0 / fx)
+        # along the road one pixel spans depth^2 / (f h) metres of ground
+        px_long = np.maximum(depth * px_lat * np.float32(fx / (fy * scene.camera_height)), px_lat)
+        col = materials.road_surface(scene.road, t, s, depth, px_lat, px_long)
+        light = scene.ambient + (1.0 - scene.ambient) * max(-scene.ground_normal @ scene.sun, 0.0)
+        self.image[rr, cc] = col * np.float32(light)
+
+    def shadows(self) -> None:
+        """Soft-edged shadows of the road users on the surface they stand on."""
+        scene, cam = self.scene, self.cam
+        if scene.shadow <= 0 or not scene.objects:
+            return
+        sun_road = scene.sun @ scene.road_rotation
+        H, W = cam.size
+        mask = np.zeros((H, W), np.float32)
+        for obj in scene.objects:
+            foot = scene.to_road(obj.corners()[:4])
+            foot[:, 1] = obj.support_y
+            centre = foot.mean(axis=0)
+            grown = centre + (foot - centre) * 1.08
+            elev = max(-sun_road[1], 0.2)
+            shift = -sun_road / elev * obj.dimensions[0] * 0.6
+            shift[1] = 0.0
+            poly = np.concatenate([grown, grown + shift])
+            world = poly @ scene.road_rotation.T + scene.road_translation
+            uv, w = project(world, cam.P)
+            if np.any(w < NEAR):
+                continue
+            hull = cv2.convexHull(np.round(uv * 4).astype(np.int32))
+            cv2.fillConvexPoly(mask, hull, 1.0, lineType=cv2.LINE_AA, shift=2)
+        receivers = (self.kind == GROUND) | (self.kind == RECEIVER)
+        self.image *= (1.0 - scene.shadow * mask * receivers)[:, :, None]
+
+
+def render_view(
+    scene: Scene, P: np.ndarray, image_size: tuple[int, int], rng: np.random.Generator
+) -> ViewRender:
+    """Renders ``scene`` through the projection ``P`` (3, 4) into an image of ``(H, W)``.
+
+    ``rng`` draws the sensor noise (the only randomness of the camera).
+    """
+    cam = Camera(np.asarray(P, np.float64), tuple(image_size))
+    canvas = _Canvas(scene, cam)
+    for solid in scene.background:
+        canvas.draw(solid)
+    silhouette = np.zeros(len(scene.objects), np.int64)
+    for i, obj in enumerate(scene.objects):
+        verts = np.concatenate([p.vertices for p in obj.parts])
+        rect = screen_rect(verts, cam.P, canvas.bounds)
+        if rect is None:
+            continue
+        union = np.zeros((rect[3] - rect[2] + 1, rect[1] - rect[0] + 1), bool)
+        for part in obj.parts:
+            canvas.draw(part, i, rect, union)
+        silhouette[i] = int(union.sum())
+    color, kind = canvas.shade()
+    depth = np.zeros(cam.size, np.float32)
+    valid = canvas.zbuf > np.float32(1.0 / MAX_DEPTH)
+    depth[valid] = 1.0 / canvas.zbuf[valid]
+    image = _expose(color, scene, rng)
+    return ViewRender(image, depth, canvas.ids, silhouette, kind)
+
+
+def silhouette_outside(obj_parts, P: np.ndarray, image_size, max_samples: int = 60000) -> float:
+    """Area (pixels) of an object's silhouette outside the image (sampled on a grid).
+
+    The silhouette is considered within ``[-2W, 3W] x [-2H, 3H]``.
+    """
+    H, W = image_size
+    cam = Camera(np.asarray(P, np.float64), (H, W))
+    verts = np.concatenate([p.vertices for p in obj_parts])
+    rect = screen_rect(verts, P, (-2 * W, 3 * W, -2 * H, 3 * H))
+    if rect is None:
+        return 0.0
+    u0, u1, v0, v1 = rect
+    if u0 >= 0 and v0 >= 0 and u1 <= W - 1 and v1 <= H - 1:
+        return 0.0
+    area = (u1 - u0 + 1) * (v1 - v0 + 1)
+    stride = max(1, int(np.ceil(np.sqrt(area / max_samples))))
+    U = np.arange(u0, u1 + 1, stride)
+    V = np.arange(v0, v1 + 1, stride)
+    union = np.zeros((len(V), len(U)), bool)
+    for part in obj_parts:
+        union |= cast(part, cam, rect, stride)[0]
+    outside = ~(((U >= 0) & (U <= W - 1))[None, :] & ((V >= 0) & (V <= H - 1))[:, None])
+    return float((union & outside).sum()) * stride * stride
+
+
+def _expose(image: np.ndarray, scene: Scene, rng: np.random.Generator) -> np.ndarray:
+    """Camera response: exposure/white balance, slight lens blur, sensor noise, 8-bit output."""
+    img = image * (scene.exposure * np.float32(255.0))
+    H, W = img.shape[:2]
+    noise = _sensor_noise(H, W)
+    y0, x0 = (
+        int(rng.integers(0, noise.shape[0] - H + 1)),
+        int(rng.integers(0, noise.shape[1] - W + 1)),
+    )
+    img += noise[y0 : y0 + H, x0 : x0 + W]
+    img = cv2.GaussianBlur(img, (3, 3), 0.6)  # (the noise is blurred too, like demosaicing does)
+    np.clip(img, 0.0, 255.0, out=img)
+    return img.astype(np.uint8)
+
+
+@functools.cache
+def _sensor_noise_field(height: int, width: int) -> np.ndarray:
+    rng = np.random.default_rng(7)
+    return rng.normal(0.0, 2.0, (height, width, 3)).astype(np.float32)
+
+
+def _sensor_noise(height: int, width: int) -> np.ndarray:
+    """A fixed field of sensor noise (std 2 grey levels) a little larger than the image."""
+    return _sensor_noise_field(height + 64, width + 64)

@@ -1,0 +1,195 @@
+"""The roadside of a scene: kerbs and sidewalks, buildings with windows, trees, poles, skyline.
+
+Everything is built in the road frame ``(t, y, s)`` (see ``scene.py``) as
+convex solids and handed to the scene builder, which moves it to the camera
+frame. Trees, poles and barriers also leave footprints that road users avoid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from gac_jax.data.synthetic import shapes
+
+ROAD_END = 170.0  # buildings and sidewalks end here; a skyline closes the view behind
+PLASTER = np.array(
+    [
+        [0.80, 0.76, 0.66],
+        [0.85, 0.84, 0.80],
+        [0.62, 0.62, 0.60],
+        [0.78, 0.62, 0.40],
+        [0.58, 0.30, 0.22],
+        [0.86, 0.80, 0.55],
+        [0.55, 0.50, 0.45],
+    ]
+)
+
+
+@dataclasses.dataclass
+class Footprint:
+    """An oriented rectangle on the road plane: centre (t, s), half sizes, heading psi."""
+
+    t: float
+    s: float
+    half_l: float
+    half_w: float
+    psi: float
+
+    def axes(self):
+        fwd = np.array([np.sin(self.psi), np.cos(self.psi)])
+        side = np.array([np.cos(self.psi), -np.sin(self.psi)])
+        return fwd, side
+
+    def overlaps(self, other: Footprint, margin: float) -> bool:
+        """Separating-axis test of the two rectangles grown by ``margin``."""
+        d = np.array([other.t - self.t, other.s - self.s])
+        reach = np.hypot(self.half_l, self.half_w) + np.hypot(other.half_l, other.half_w)
+        if abs(d[0]) > reach + 2 * margin or abs(d[1]) > reach + 2 * margin:
+            return False
+        a_f, a_s = self.axes()
+        b_f, b_s = other.axes()
+        for axis in (a_f, a_s, b_f, b_s):
+            ra = (self.half_l + margin) * abs(axis @ a_f) + (self.half_w + margin) * abs(axis @ a_s)
+            rb = (other.half_l + margin) * abs(axis @ b_f) + (other.half_w + margin) * abs(
+                axis @ b_s
+            )
+            if abs(axis @ d) > ra + rb:
+                return False
+        return True
+
+
+def build(b) -> None:
+    """Adds kerbs, sidewalks, buildings, trees, poles and the skyline to the scene builder ``b``."""
+    rng, h = b.rng, b.h
+    b.kerb = {}
+    b.sidewalk = {}
+    for side in (-1, 1):
+        edge = b.edges[side]
+        if b.sides[side] == "urban":
+            width = rng.uniform(2.0, 4.5)
+            kerb = rng.uniform(0.10, 0.16)
+            b.kerb[side], b.sidewalk[side] = kerb, width
+            t0, t1 = sorted((edge, edge + side * (width + 3.0)))
+            paving = np.array([0.62, 0.60, 0.56]) * rng.uniform(0.8, 1.1)
+            colors = np.array([paving * 1.1] * 6)
+            mats = np.full(6, shapes.FLAT)
+            colors[shapes.TOP], mats[shapes.TOP] = paving, shapes.PAVING
+            b.add_road_solid(shapes.box(t0, t1, h - kerb, h + 0.3, -20.0, ROAD_END, colors, mats))
+            _buildings(b, side, edge + side * width)
+            if rng.random() < 0.5:
+                _trees(b, side, edge + side * 0.9, h - kerb, spacing=(8.0, 16.0))
+            _poles(b, side, edge + side * 0.5, h - kerb)
+        else:
+            b.kerb[side], b.sidewalk[side] = 0.0, 0.0
+            if rng.random() < 0.5:  # concrete barrier
+                t0, t1 = sorted((edge + side * 0.4, edge + side * 0.65))
+                grey = np.array([0.7, 0.7, 0.68]) * rng.uniform(0.8, 1.1)
+                b.add_road_solid(
+                    shapes.box(t0, t1, h - rng.uniform(0.6, 0.9), h + 0.2, -10.0, ROAD_END, grey)
+                )
+                b.obstacles.append(Footprint(0.5 * (t0 + t1), 80.0, 90.0, 0.2, 0.0))
+            _trees(b, side, edge + side * rng.uniform(2.0, 5.0), h, spacing=(5.0, 12.0))
+            _poles(b, side, edge + side * 1.2, h)
+    _skyline(
+        b,
+    )
+
+
+def _buildings(b, side, front_t):
+    rng, h = b.rng, b.h
+    s = -25.0
+    while s < ROAD_END:
+        width = rng.uniform(8.0, 28.0)
+        setback = 0.0 if rng.random() < 0.6 else rng.uniform(0.5, 3.0)
+        height = rng.uniform(5.0, 22.0)
+        t_front = front_t + side * setback
+        t0, t1 = sorted((t_front, t_front + side * rng.uniform(8.0, 15.0)))
+        plaster = PLASTER[rng.integers(len(PLASTER))] * rng.uniform(0.8, 1.1)
+        glass = np.array([0.12, 0.15, 0.2]) * rng.uniform(0.6, 1.4)
+        params = (
+            h,
+            rng.uniform(2.8, 3.6),
+            rng.uniform(1.8, 3.5),
+            rng.uniform(0.35, 0.6),
+            rng.uniform(0.4, 0.6),
+            *glass,
+            int(rng.integers(1 << 20)),
+            float(rng.random() < 0.4),  # shop windows on the ground floor
+        )
+        mats = np.full(6, shapes.FACADE)
+        mats[shapes.TOP] = shapes.FLAT
+        solid = shapes.box(t0, t1, h - height, h + 0.5, s, s + width, plaster, mats, params)
+        b.add_road_solid(solid)
+        s += width + (0.0 if rng.random() < 0.6 else rng.uniform(2.0, 10.0))
+
+
+def _trees(b, side, t, ground_y, spacing):
+    rng = b.rng
+    s = rng.uniform(-5.0, 10.0)
+    while s < ROAD_END - 20:
+        tt = t + side * rng.uniform(0.0, 0.4)
+        trunk_h, crown_h, radius = (
+            rng.uniform(1.8, 3.0),
+            rng.uniform(2.5, 5.5),
+            rng.uniform(1.0, 2.2),
+        )
+        bark = np.array([0.3, 0.22, 0.15]) * rng.uniform(0.6, 1.2)
+        leaf = np.array([0.18, 0.32, 0.12]) * rng.uniform(0.6, 1.4, 3)
+        top = ground_y - trunk_h - crown_h
+        b.add_road_solid(
+            shapes.box(
+                tt - 0.15, tt + 0.15, top + 0.5 * crown_h, ground_y, s - 0.15, s + 0.15, bark
+            )
+        )
+        ys = [top, top + 0.45 * crown_h, top + crown_h]
+        radii = [0.5 * radius, radius, 0.45 * radius]
+        b.add_road_solid(shapes.lathe(radii, ys, 8, (tt, s), leaf, shapes.FOLIAGE))
+        b.obstacles.append(Footprint(tt, s, 0.3, 0.3, 0.0))
+        s += rng.uniform(*spacing)
+
+
+def _poles(b, side, t, ground_y):
+    rng = b.rng
+    s = rng.uniform(0.0, 30.0)
+    while s < ROAD_END - 20:
+        grey = np.array([0.5, 0.5, 0.52]) * rng.uniform(0.6, 1.2)
+        if rng.random() < 0.3:  # traffic sign
+            top = ground_y - rng.uniform(2.2, 2.8)
+            b.add_road_solid(
+                shapes.box(t - 0.04, t + 0.04, top, ground_y, s - 0.04, s + 0.04, grey)
+            )
+            plate = [(0.1, 0.25, 0.65), (0.8, 0.1, 0.1), (0.9, 0.9, 0.9), (0.9, 0.75, 0.1)]
+            color = np.array(plate[rng.integers(4)])
+            b.add_road_solid(
+                shapes.box(t - 0.35, t + 0.35, top - 0.6, top + 0.05, s - 0.08, s - 0.04, color)
+            )
+        else:
+            top = ground_y - rng.uniform(5.0, 8.0)
+            b.add_road_solid(
+                shapes.box(t - 0.08, t + 0.08, top, ground_y, s - 0.08, s + 0.08, grey)
+            )
+        b.obstacles.append(Footprint(t, s, 0.3, 0.4, 0.0))
+        s += rng.uniform(20.0, 45.0)
+
+
+def _skyline(b):
+    rng, h = b.rng, b.h
+    t = -320.0
+    trees = rng.random() < 0.5
+    while t < 320.0:
+        width = rng.uniform(15.0, 60.0)
+        s0 = ROAD_END + rng.uniform(0.0, 25.0)
+        height = rng.uniform(6.0, 18.0) if trees else rng.uniform(8.0, 35.0)
+        if trees:
+            color = np.array([0.14, 0.22, 0.10]) * rng.uniform(0.7, 1.4)
+            mats, params = shapes.FOLIAGE, ()
+        else:
+            color = PLASTER[rng.integers(len(PLASTER))] * rng.uniform(0.6, 0.9)
+            mats = np.full(6, shapes.FACADE)
+            params = (h, 3.2, 2.5, 0.5, 0.5, 0.12, 0.14, 0.18, int(rng.integers(1 << 20)))
+        b.add_road_solid(
+            shapes.box(t, t + width, h - height, h + 0.5, s0, s0 + 20.0, color, mats, params)
+        )
+        t += width
