@@ -20,6 +20,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.source = "synthetic"
     c.data.synthetic.num_frames = 1000
     c.data.synthetic.seed = 0
+    c.data.synthetic.val_fraction = 0.3  # 700 train / 300 val frames
     c.data.use_right_image = True
     c.data.crop_top = 100
     c.data.height = 96

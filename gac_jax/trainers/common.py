@@ -21,7 +21,7 @@ def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
     if cfg.get("root"):
         return Path(cfg.root)
     s = cfg.synthetic
-    name = f"synthetic_n{s.num_frames}_s{s.seed}_{s.height}x{s.width}"
+    name = f"synthetic_n{s.num_frames}_s{s.seed}_{s.height}x{s.width}_val{s.val_fraction:g}"
     return default_cache_dir() / name
 
 
