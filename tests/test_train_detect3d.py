@@ -49,19 +49,25 @@ def restore_params(workdir: Path, step: int | None = None) -> dict:
     return jax.tree.map(np.asarray, dict(raw["state"])["params"])
 
 
-def test_end_to_end_run_evaluates_and_writes_results(tiny_config, tmp_path):
-    apply_overrides(tiny_config, ["train.num_steps=3", "eval.score_threshold=0.0"])
-    out = detect3d.train_and_evaluate(tiny_config, tmp_path)
+def test_default_tiny_run_generates_data_trains_and_evaluates(tmp_path, monkeypatch):
+    """``train.py --task detect3d --config ...:tiny`` end to end on the embedded generator."""
+    monkeypatch.setenv("GAC_JAX_CACHE", str(tmp_path / "cache"))
+    config = load_config(str(REPO / "configs" / "detect3d_default.py:tiny"))
+    apply_overrides(config, ["train.num_steps=3", "eval.score_threshold=0.0"])
+    workdir = tmp_path / "run"
+    out = detect3d.train_and_evaluate(config, workdir)
+    data_root = tmp_path / "cache" / "synthetic_n16_s0_188x621_val0.3"
+    assert (data_root / "synthetic.json").exists()
+    num_val = len((data_root / "ImageSets" / "val.txt").read_text().split())
     assert set(out["metrics"]) == {"ap11", "ap40"}
     assert set(out["metrics"]["ap40"]["Car"]) == {"0.70", "0.50"}
-    assert out["num_frames"] == 13
-    result_files = sorted((tmp_path / "results" / "step_3" / "data").glob("*.txt"))
-    assert len(result_files) == 13
-    lines = (tmp_path / "metrics.jsonl").read_text().splitlines()
+    assert out["num_frames"] == num_val > 0
+    result_files = sorted((workdir / "results" / "step_3" / "data").glob("*.txt"))
+    assert len(result_files) == num_val
+    lines = (workdir / "metrics.jsonl").read_text().splitlines()
     assert any('"kind": "eval"' in line for line in lines)
-    assert (tmp_path / "config.json").exists() and (tmp_path / "anchor_priors.npz").exists()
-    # A second call resumes at the final step: no training, same checkpoint.
-    with Checkpoints(tmp_path) as ckpts:
+    assert (workdir / "config.json").exists() and (workdir / "anchor_priors.npz").exists()
+    with Checkpoints(workdir) as ckpts:
         assert ckpts.latest_step() == 3
 
 
