@@ -29,6 +29,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -36,7 +37,6 @@ from pathlib import Path
 
 import jax
 import numpy as np
-import portpicker
 import pytest
 
 from gac_jax.checkpointing import Checkpoints
@@ -55,6 +55,12 @@ from gac_jax.trainers import detect3d
 detect3d.make_optimizer = lambda *args, **kwargs: optax.sgd({SGD_LR})
 sys.exit(train.main(sys.argv[1:]))
 """
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
 
 
 def tiny_args(root: Path, workdir: Path) -> list[str]:
@@ -107,7 +113,7 @@ class Run:
     """``num_processes`` workers of one job (train.py + SGD), logging to ``tmp/<name>.pI.log``."""
 
     def __init__(self, name: str, args: list[str], env: dict, num_processes: int, tmp: Path):
-        port = portpicker.pick_unused_port()
+        port = free_port()
         self.logs = [tmp / f"{name}.p{i}.log" for i in range(num_processes)]
         self.procs = []
         for i, log in enumerate(self.logs):
@@ -264,7 +270,7 @@ def test_two_processes_train_like_one_survive_a_kill_and_resume_across_counts(
 
 
 HANGING_WORKER = f"""
-import sys, time
+import os, sys, time
 sys.path.insert(0, {str(REPO)!r})
 from gac_jax import multiprocess, parallel
 process_id, port = int(sys.argv[1]), sys.argv[2]
@@ -272,20 +278,25 @@ multiprocess.initialize_distributed(f"localhost:{{port}}", 2, process_id, step_t
 import jax, numpy as np
 mesh = parallel.make_mesh()
 total = jax.jit(lambda x: x.sum(), out_shardings=parallel.replicated(mesh))
-watchdog = multiprocess.ProgressWatchdog(hint="(restart hint)")
-for step in range(1, 1000):
-    batch = parallel.to_global({{"x": np.full((1,), step, np.float32)}}, mesh)
-    out = total(batch["x"])
-    watchdog.step(step, out)
-    assert float(out) == 2 * step
-    if process_id == 1 and step == 20:
-        print("process 1 hangs", flush=True)
-        time.sleep(1000)  # alive, heartbeats go on, never joins the next collective
+try:  # the trainer's loop, in miniature
+    with multiprocess.ProgressWatchdog(hint="(restart hint)") as watchdog:
+        for step in range(1, 1000):
+            batch = parallel.to_global({{"x": np.full((1,), step, np.float32)}}, mesh)
+            out = total(batch["x"])
+            watchdog.step(step, out)
+            assert float(out) == 2 * step
+            if process_id == 1 and step == 20:
+                print("process 1 hangs", flush=True)
+                time.sleep(1000)  # alive, heartbeats go on, never joins the next collective
+except Exception as e:
+    multiprocess.raise_if_peer_failure(e, "(restart hint)")
+    raise
 """
+# (train.py prints PeerLostError and leaves with exit code 3; here the traceback shows it.)
 
 
 def test_a_hanging_process_is_stopped_by_the_step_watchdog(env, tmp_path):
-    port = str(portpicker.pick_unused_port())
+    port = str(free_port())
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", HANGING_WORKER, str(i), port],
@@ -298,21 +309,25 @@ def test_a_hanging_process_is_stopped_by_the_step_watchdog(env, tmp_path):
         for i in range(2)
     ]
     try:
-        outs = [p.communicate(timeout=120)[0] for p in procs]
+        outs = [p.communicate(timeout=120)[0] for p in procs]  # both end: no hang
     finally:
         for p in procs:
             if p.poll() is None:
                 os.killpg(p.pid, signal.SIGKILL)
-    assert [p.returncode for p in procs] == [3, 3], outs
     assert "process 1 hangs" in outs[1]
-    for i, out in enumerate(outs):
-        assert f"error: process {i}/2: no progress for 3 s while waiting for training step" in out
-        assert "(restart hint)" in out
+    assert all(p.returncode != 0 for p in procs), outs
+    # Whichever watchdog fires first (their clocks start a step apart), the stop cascades:
+    # the hung process exits on its own watchdog (then process 0's collective fails:
+    # PeerLostError) or on JAX's when process 0 (the coordinator) has left on its watchdog.
+    watchdog_message = "no progress for 3 s while waiting for training step"
+    assert any(f"error: process {i}/2: {watchdog_message}" in outs[i] for i in (0, 1)), outs
+    assert watchdog_message in outs[0] or "PeerLostError: process 0/2: lost contact" in outs[0]
+    assert "(restart hint)" in outs[0]
 
 
 def test_a_work_directory_not_shared_by_all_processes_is_refused(kitti_object_root, env, tmp_path):
     # Each process gets its own folder, as on hosts without a shared filesystem.
-    port = portpicker.pick_unused_port()
+    port = free_port()
     procs = []
     for i in range(2):
         args = tiny_args(kitti_object_root, tmp_path / f"host{i}")
