@@ -5,13 +5,18 @@
     python train.py --task depth
     python train.py --task detect3d train.num_steps=200 data.batch_size=4   # overrides
 
-Multi-host: add ``--coordinator HOST:PORT --num-processes N --process-id I`` on every host.
+Multi-host: add ``--coordinator HOST:PORT --num-processes N --process-id I`` on every host
+(or set GAC_COORDINATOR, GAC_NUM_PROCESSES, GAC_PROCESS_ID; ``--coordinator auto`` detects
+SLURM / Open MPI). See docs/multihost.md. Exit codes: 0 done, 1 crash, 2 bad config or data,
+3 another process died or hung, 75 stopped on SIGTERM after a checkpoint (run again to resume).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import traceback
 
 DEFAULT_CONFIGS = {"detect3d": "configs/detect3d_default.py", "depth": "configs/depth_default.py"}
 
@@ -31,16 +36,66 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--num-processes", type=int, help="multi-process: total number of processes"
     )
     parser.add_argument("--process-id", type=int, help="multi-process: index of this process")
+    parser.add_argument(
+        "--heartbeat-timeout",
+        type=int,
+        help="multi-process: seconds without heartbeats before a process counts as dead (100)",
+    )
+    parser.add_argument(
+        "--step-timeout",
+        type=float,
+        help="multi-process: seconds without a completed training step (compilation and "
+        "checkpoint saves included) before a process stops, assuming a peer hung (900)",
+    )
+    parser.add_argument(
+        "--wait-timeout",
+        type=float,
+        help="multi-process: seconds the other processes wait for process 0's evaluation, "
+        "dataset generation or anchor priors (7200)",
+    )
     parser.add_argument("overrides", nargs="*", help="config overrides, key.sub=value")
     return parser.parse_args(argv)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    from gac_jax import parallel
+    from gac_jax import multiprocess
 
-    parallel.initialize_distributed(args.coordinator, args.num_processes, args.process_id)
+    try:
+        multi = multiprocess.initialize_distributed(
+            args.coordinator,
+            args.num_processes,
+            args.process_id,
+            heartbeat_timeout=args.heartbeat_timeout,
+            step_timeout=args.step_timeout,
+            wait_timeout=args.wait_timeout,
+        )
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    try:
+        code = _run(args)
+    except multiprocess.PeerLostError as e:
+        print(f"error: {e}", file=sys.stderr)
+        code = multiprocess.EXIT_PEER_LOST
+    except multiprocess.PreemptedError as e:
+        print(e, flush=True)
+        code = multiprocess.EXIT_PREEMPTED
+    except BaseException:
+        if not multi:
+            raise
+        traceback.print_exc()
+        code = 1
+    if multi and code not in (0, multiprocess.EXIT_PREEMPTED):
+        # Failed: leave at once. A normal exit would wait in JAX's shutdown barrier
+        # for peers that may be dead or stuck in a collective with this process.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
+
+def _run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from gac_jax.config import ConfigError, apply_overrides, load_config, resolve_config_path

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
 
 
@@ -54,6 +55,32 @@ class Checkpoints:
             ),
         )
         return restored.state, dict(restored.meta)
+
+    def restore_local(self, step: int | None = None) -> tuple[dict, dict]:
+        """Restores ``step`` (default: latest) as numpy arrays, whatever topology wrote it.
+
+        A checkpoint records the shardings of the run that saved it (e.g. a mesh
+        over two processes); this reads it onto this process's first device
+        instead, e.g. to inspect or evaluate a multi-host run on one machine.
+        Returns ``(state, meta)`` with ``state`` a nested dict of the train
+        state's fields. For single-process use.
+        """
+        step = self.latest_step() if step is None else step
+        if step is None or step not in self.all_steps():
+            raise FileNotFoundError(f"checkpoint step {step} not found in {self.directory}")
+        device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        with ocp.StandardCheckpointer() as reader:
+            stored = reader.metadata(self.directory / str(step) / "state").item_metadata
+        target = jax.tree.map(
+            lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=device), stored
+        )
+        restored = self._manager.restore(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardRestore(target), meta=ocp.args.JsonRestore()
+            ),
+        )
+        return jax.tree.map(np.asarray, dict(restored.state)), dict(restored.meta)
 
     def restore_meta(self, step: int | None = None) -> dict:
         step = self.latest_step() if step is None else step

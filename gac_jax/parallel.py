@@ -1,15 +1,15 @@
 """Data parallelism with ``jax.jit`` over a one-axis device mesh (no pmap).
 
-The same code runs on 1 CPU, N local devices and N processes: parameters are
-replicated, every batch array is sharded along its leading axis over the mesh
-axis ``'data'``, and XLA inserts the collectives. Losses computed on the
-global (sharded) batch are therefore identical to a single-device run on the
-same global batch.
+The same code runs on 1 CPU, N local devices and N processes (hosts):
+parameters are replicated, every batch array is sharded along its leading
+axis over the mesh axis ``'data'``, and XLA inserts the collectives. Losses
+computed on the global (sharded) batch are therefore identical to a
+single-device run on the same global batch. Starting, coordinating and
+supervising several processes is :mod:`gac_jax.multiprocess`.
 """
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 
 import jax
@@ -20,49 +20,10 @@ from jax.sharding import PartitionSpec as P
 DATA_AXIS = "data"
 
 
-def initialize_distributed(
-    coordinator: str | None = None,
-    num_processes: int | None = None,
-    process_id: int | None = None,
-    initialization_timeout: int = 300,
-) -> bool:
-    """Starts the multi-process runtime when asked to; returns True if it did.
-
-    Arguments fall back to the environment variables that cluster launchers
-    set (``GAC_COORDINATOR``/``JAX_COORDINATOR_ADDRESS``, ``GAC_NUM_PROCESSES``/
-    ``JAX_NUM_PROCESSES``, ``GAC_PROCESS_ID``/``JAX_PROCESS_ID``). Must run
-    before anything touches a device. On CPU, cross-process collectives use gloo.
-    """
-    env = os.environ
-    coordinator = coordinator or env.get("GAC_COORDINATOR") or env.get("JAX_COORDINATOR_ADDRESS")
-    if num_processes is None:
-        value = env.get("GAC_NUM_PROCESSES") or env.get("JAX_NUM_PROCESSES")
-        num_processes = int(value) if value else None
-    if process_id is None:
-        value = env.get("GAC_PROCESS_ID") or env.get("JAX_PROCESS_ID")
-        process_id = int(value) if value else None
-    if coordinator is None and num_processes is None and process_id is None:
-        return False
-    if coordinator is None or num_processes is None or process_id is None:
-        raise ValueError(
-            "multi-process training needs all of --coordinator, --num-processes and --process-id "
-            f"(got {coordinator=}, {num_processes=}, {process_id=})"
-        )
-    if num_processes == 1:
-        return False
-    jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    jax.distributed.initialize(
-        coordinator_address=coordinator,
-        num_processes=num_processes,
-        process_id=process_id,
-        initialization_timeout=initialization_timeout,
-    )
-    return True
-
-
 def make_mesh(devices=None) -> Mesh:
-    """A 1-D mesh with axis ``'data'`` over all (global) devices."""
-    devices = jax.devices() if devices is None else devices
+    """A 1-D mesh with axis ``'data'`` over all (global) devices, grouped by process."""
+    if devices is None:
+        devices = sorted(jax.devices(), key=lambda d: (d.process_index, d.id))
     return Mesh(np.asarray(devices), (DATA_AXIS,))
 
 
@@ -82,6 +43,29 @@ def check_batch_size(global_batch_size: int, mesh: Mesh) -> int:
             f"global batch size {global_batch_size} is not divisible by the {n_dev} mesh devices"
         )
     return global_batch_size // n_proc
+
+
+def process_shard(mesh: Mesh) -> tuple[int, int]:
+    """``(shard_index, num_shards)`` of this process's rows of every global batch.
+
+    :func:`to_global` places a process's local batch at the rows of its devices
+    in the mesh, so the loader must read shard ``k`` of ``n`` where ``k`` is the
+    position of this process's (contiguous) block of devices along ``'data'``.
+    """
+    owners = [d.process_index for d in mesh.devices.flat]
+    n = jax.process_count()
+    block = len(owners) // n
+    if block * n != len(owners) or any(
+        owners[i] != owners[i - i % block] for i in range(len(owners))
+    ):
+        raise ValueError(
+            f"the mesh devices of each process must form equal contiguous blocks, got owners "
+            f"{owners}; build the mesh with gac_jax.parallel.make_mesh()"
+        )
+    starts = [i for i in range(0, len(owners), block) if owners[i] == jax.process_index()]
+    if len(starts) != 1:
+        raise ValueError(f"process {jax.process_index()} owns {len(starts)} blocks of {owners}")
+    return starts[0] // block, n
 
 
 def to_global(batch: Mapping[str, np.ndarray], mesh: Mesh) -> dict[str, jax.Array]:

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from gac_jax import parallel
+from gac_jax import multiprocess, parallel
 from gac_jax.anchor_filter import ground_mask_from_constants
 from gac_jax.anchor_priors import (
     load_or_compute_priors,
@@ -289,6 +289,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     if is_main:
         workdir.mkdir(parents=True, exist_ok=True)
         save_config(config, workdir)
+    multiprocess.check_shared_directory(workdir)
 
     # Mesh.
     mesh = parallel.make_mesh()
@@ -301,14 +302,15 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     train_source = open_object_source(
         root, config.data.train_split, use_right_image=config.data.use_right_image
     )
+    shard_index, num_shards = parallel.process_shard(mesh)  # this process's rows of each batch
     loader = Loader(
         train_source,
         train_transform(config),
         DetectionArrays(classes, config.data.max_objects, truncate=True),
         batch_size=per_process_batch,
         seed=config.seed,
-        shard_index=jax.process_index(),
-        num_shards=jax.process_count(),
+        shard_index=shard_index,
+        num_shards=num_shards,
         worker_count=config.data.num_workers,
     )
     steps_per_epoch = loader.steps_per_epoch
@@ -317,7 +319,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     # Anchors and priors (numpy, once; constants of the compiled graph).
     layout = anchor_layout(config)
     anchors = generate_anchors(layout)
-    priors = compute_priors(config, root, layout, workdir)
+    with multiprocess.main_process_first("anchor_priors"):  # the others read process 0's cache
+        priors = compute_priors(config, root, layout, workdir)
     constants = make_detection_constants(anchors, priors)
 
     # Model and optimizer.
@@ -379,13 +382,16 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
                 json.dump(out, f, indent=2)
         return out
 
-    # Loop.
+    # Loop. In a multi-process run the watchdog stops a process whose peers hang.
+    hint = f"Restart all processes to resume from the last checkpoint in {checkpoints.directory}."
+    watchdog = multiprocess.ProgressWatchdog(hint=hint)
     compile_t0 = time.perf_counter()
     step = start_step
     try:
         for batch in loader.iterate(start_step, total_steps - start_step):
             state, metrics = train_step(state, parallel.to_global(batch, mesh))
             step += 1
+            watchdog.step(step, metrics)
             if step == start_step + 1:
                 jax.block_until_ready(metrics)
                 writer.write(step, kind="compile", compile_s=time.perf_counter() - compile_t0)
@@ -404,6 +410,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
                     {"cls": float(m["cls_loss"]), "reg": float(m["reg_loss"])},
                 )
                 writer.write(step, lr=lr, **{k: float(v) for k, v in m.items()}, **stats)
+            if multiprocess.preemption_requested(step):  # SIGTERM to any process: all stop here
+                save(step)
+                raise multiprocess.PreemptedError(
+                    f"stopped at step {step} on a preemption notice (SIGTERM); checkpoint saved "
+                    f"in {checkpoints.directory}. Run the same command again to resume."
+                )
             if step % config.train.checkpoint_every == 0 and step < total_steps:
                 save(step)
             if (
@@ -411,12 +423,21 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
                 and step % config.train.eval_every == 0
                 and step < total_steps
             ):
-                run_evaluation(step)
+                # Evaluation runs on process 0 alone; the others wait at a barrier.
+                multiprocess.run_on_main(
+                    functools.partial(run_evaluation, step), f"eval_{step}", watchdog
+                )
+        if step > start_step or checkpoints.latest_step() != step:
+            save(step)
+        checkpoints.wait()
+    except Exception as e:
+        multiprocess.raise_if_peer_failure(e, hint)  # a clear PeerLostError instead of a gloo error
+        raise
     finally:
+        watchdog.close()
         progress.close()
-    if step > start_step or checkpoints.latest_step() != step:
-        save(step)
-    checkpoints.wait()
-    result = run_evaluation(step) if is_main and config.train.eval_at_end else {}
+    result = None
+    if config.train.eval_at_end:
+        result = multiprocess.run_on_main(functools.partial(run_evaluation, step), "eval_final")
     checkpoints.close()
-    return result
+    return result or {}

@@ -1,0 +1,440 @@
+"""Multi-process runs (``jax.distributed``): start-up, coordination and failure detection.
+
+What a trainer needs so that N processes behave like one and a lost process
+never leaves the others hanging (the data-parallel step itself is
+:mod:`gac_jax.parallel`):
+
+* :func:`initialize_distributed` from flags or launcher environment variables;
+* :func:`barrier`, :func:`main_process_first`, :func:`run_on_main`: work done by
+  process 0 alone (dataset generation, anchor priors, evaluation) while the
+  others wait with a timeout; :func:`check_shared_directory`;
+* :class:`ProgressWatchdog`: exits a process whose training step has not
+  completed for ``step_timeout`` seconds (a peer that hangs while alive);
+  :func:`raise_if_peer_failure` turns the collective / coordination errors seen
+  when a peer dies into a clear :class:`PeerLostError`;
+* :func:`preemption_requested`: SIGTERM to any process (the JAX preemption
+  service) makes all of them stop at the same step after a checkpoint.
+
+A dead peer is noticed at once by the surviving processes' next collective
+(the CPU/gloo or GPU transport reports the closed connection) or, when a
+survivor waits in a coordination-service barrier, after ``heartbeat_timeout``
+seconds. When process 0 (the coordinator) dies, JAX terminates the others
+itself ("the JAX distributed service detected fatal errors").
+
+In a single process every function here is free and trivial.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import itertools
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+EXIT_PEER_LOST = 3  # another process died or hung; restart all processes to resume
+EXIT_PREEMPTED = 75  # stopped on SIGTERM after a checkpoint (EX_TEMPFAIL: run again to resume)
+
+
+class PeerLostError(RuntimeError):
+    """Another process of a multi-process run died, hung or could not be reached."""
+
+
+class PreemptedError(RuntimeError):
+    """All processes stopped at the same step after a preemption notice (SIGTERM)."""
+
+
+@dataclasses.dataclass
+class DistributedSettings:
+    """Timeouts of a multi-process run (seconds), set by :func:`initialize_distributed`.
+
+    Attributes:
+      step_timeout: longest time between two completed training steps (the first
+        includes compilation, any includes a checkpoint save) before the
+        :class:`ProgressWatchdog` declares a peer hung and exits the process.
+      wait_timeout: longest time processes wait at a barrier for work that
+        process 0 does alone (dataset generation, anchor priors, evaluation).
+      heartbeat_timeout: after this long without heartbeats JAX declares a process dead.
+    """
+
+    step_timeout: float = 900.0
+    wait_timeout: float = 7200.0
+    heartbeat_timeout: int = 100
+
+
+settings = DistributedSettings()
+
+_ENV = {
+    "coordinator": ("GAC_COORDINATOR", "JAX_COORDINATOR_ADDRESS"),
+    "num_processes": ("GAC_NUM_PROCESSES", "JAX_NUM_PROCESSES"),
+    "process_id": ("GAC_PROCESS_ID", "JAX_PROCESS_ID"),
+    "heartbeat_timeout": ("GAC_HEARTBEAT_TIMEOUT",),
+    "step_timeout": ("GAC_STEP_TIMEOUT",),
+    "wait_timeout": ("GAC_WAIT_TIMEOUT",),
+}
+
+
+def _env(name: str) -> str | None:
+    for var in _ENV[name]:
+        if os.environ.get(var):
+            return os.environ[var]
+    return None
+
+
+def _env_number(name: str, kind: type):
+    value = _env(name)
+    if value is None:
+        return None
+    try:
+        return kind(value)
+    except ValueError:
+        raise ValueError(f"{'/'.join(_ENV[name])} must be a number, got {value!r}") from None
+
+
+def initialize_distributed(
+    coordinator: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+    *,
+    heartbeat_timeout: int | None = None,
+    step_timeout: float | None = None,
+    wait_timeout: float | None = None,
+    initialization_timeout: int = 300,
+    shutdown_timeout: int = 300,
+) -> bool:
+    """Starts the multi-process runtime when asked to; returns True if it did.
+
+    Arguments fall back to the environment variables that cluster launchers
+    can set: ``GAC_COORDINATOR``/``JAX_COORDINATOR_ADDRESS`` (``HOST:PORT`` of
+    process 0), ``GAC_NUM_PROCESSES``/``JAX_NUM_PROCESSES``,
+    ``GAC_PROCESS_ID``/``JAX_PROCESS_ID``, ``GAC_HEARTBEAT_TIMEOUT``,
+    ``GAC_STEP_TIMEOUT``, ``GAC_WAIT_TIMEOUT`` (see :class:`DistributedSettings`).
+    ``coordinator='auto'`` lets JAX detect all three from the cluster (SLURM,
+    Open MPI, TPU pods). Nothing given (or one process): nothing happens.
+    Must run before anything touches a device. On CPU, cross-process
+    collectives use gloo.
+    """
+    coordinator = coordinator or _env("coordinator")
+    if num_processes is None:
+        num_processes = _env_number("num_processes", int)
+    if process_id is None:
+        process_id = _env_number("process_id", int)
+    for name, value, kind in (
+        ("heartbeat_timeout", heartbeat_timeout, int),
+        ("step_timeout", step_timeout, float),
+        ("wait_timeout", wait_timeout, float),
+    ):
+        value = _env_number(name, kind) if value is None else value
+        if value is not None:
+            if value <= 0:
+                raise ValueError(f"{name} must be positive, got {value}")
+            setattr(settings, name, value)
+    auto = coordinator == "auto"
+    if not auto:
+        if coordinator is None and num_processes is None and process_id is None:
+            return False
+        if coordinator is None or num_processes is None or process_id is None:
+            raise ValueError(
+                "multi-process training needs all of --coordinator, --num-processes and "
+                f"--process-id (got {coordinator=}, {num_processes=}, {process_id=})"
+            )
+        if num_processes == 1:
+            return False
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(
+        coordinator_address=None if auto else coordinator,
+        num_processes=num_processes,
+        process_id=process_id,
+        initialization_timeout=initialization_timeout,
+        heartbeat_timeout_seconds=settings.heartbeat_timeout,
+        shutdown_timeout_seconds=shutdown_timeout,
+    )
+    return jax.process_count() > 1
+
+
+def is_main_process() -> bool:
+    return jax.process_index() == 0
+
+
+# ----------------------------------------------------------------------------- coordination
+
+
+def _where() -> str:
+    return f"process {jax.process_index()}/{jax.process_count()}"
+
+
+_barrier_ids = itertools.count()
+
+
+def _client():
+    """The coordination-service client of ``jax.distributed.initialize`` (None if not started)."""
+    from jax._src import distributed
+
+    return distributed.global_state.client
+
+
+def barrier(name: str, timeout_s: float | None = None) -> None:
+    """Waits until every process reaches this barrier (no-op in a single process).
+
+    Uses the coordination service (no device collective), so it fails within
+    ``heartbeat_timeout`` when a peer dies and after ``timeout_s`` (default
+    ``wait_timeout``) when one never arrives; both raise :class:`PeerLostError`.
+    All processes must call the same barriers in the same order.
+    """
+    if jax.process_count() == 1:
+        return
+    timeout_s = settings.wait_timeout if timeout_s is None else timeout_s
+    key = f"gac_jax/{next(_barrier_ids)}/{name}"
+    client = _client()
+    try:
+        if client is None:
+            from jax.experimental import multihost_utils
+
+            multihost_utils.sync_global_devices(key)
+        else:
+            client.wait_at_barrier(key, int(timeout_s * 1000))
+    except Exception as e:
+        raise PeerLostError(
+            f"{_where()}: the other processes did not reach barrier {name!r} within "
+            f"{timeout_s:g} s (or one of them died): {_first_line(e)}"
+        ) from e
+
+
+@contextlib.contextmanager
+def main_process_first(name: str, timeout_s: float | None = None) -> Iterator[None]:
+    """Runs the body on process 0 first and on the others after it finished.
+
+    For work whose result process 0 writes to the shared work directory and
+    the others then read (``with main_process_first('priors'): priors = load_or_compute()``).
+    """
+    if jax.process_count() > 1 and not is_main_process():
+        barrier(name, timeout_s)
+    yield
+    if jax.process_count() > 1 and is_main_process():
+        barrier(name, timeout_s)
+
+
+def run_on_main(
+    fn: Callable[[], Any],
+    name: str,
+    watchdog: ProgressWatchdog | None = None,
+    timeout_s: float | None = None,
+) -> Any:
+    """Process 0 runs ``fn()`` while the others wait; returns its result there, None elsewhere.
+
+    ``fn`` must not use collectives (evaluation uses local copies of replicated
+    weights). The ``watchdog`` is paused meanwhile.
+    """
+    if jax.process_count() == 1:
+        return fn()
+    with watchdog.paused() if watchdog is not None else contextlib.nullcontext():
+        result = fn() if is_main_process() else None
+        barrier(name, timeout_s)
+    return result
+
+
+def check_shared_directory(directory: str | os.PathLike) -> None:
+    """Checks that all processes see the same ``directory`` (orbax and the priors need it).
+
+    Process 0 writes a random token there and publishes it through the
+    coordination service; the others must read the same token from the file.
+    Raises FileNotFoundError otherwise.
+    """
+    if jax.process_count() == 1:
+        return
+    path = Path(directory) / ".gac_jax_process_check"
+    key = f"gac_jax/{next(_barrier_ids)}/shared_directory"
+    client = _client()
+    if is_main_process():
+        token = os.urandom(8).hex()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(token)
+        if client is not None:
+            client.key_value_set(key, token)
+    if client is None:  # started without jax.distributed: share the token via a collective
+        from jax.experimental import multihost_utils
+
+        data = np.frombuffer(bytes.fromhex(token), np.uint8) if is_main_process() else None
+        data = multihost_utils.broadcast_one_to_all(np.zeros(8, np.uint8) if data is None else data)
+        token = bytes(np.asarray(data)).hex()
+    elif not is_main_process():
+        try:
+            token = client.blocking_key_value_get(key, int(settings.wait_timeout * 1000))
+        except Exception as e:
+            raise PeerLostError(f"{_where()}: no word from process 0: {_first_line(e)}") from e
+    seen = path.read_text().strip() if path.exists() else None
+    if seen != token:
+        raise FileNotFoundError(
+            f"{_where()}: work directory {Path(directory).resolve()} is not the one process 0 "
+            "writes to; in a multi-host run it must be on a filesystem shared by all hosts"
+        )
+
+
+def preemption_requested(step: int) -> bool:
+    """True at the step where all processes agreed to stop after a SIGTERM to any of them.
+
+    Must be called at every step by every process (single process: always False).
+    """
+    if jax.process_count() == 1:
+        return False
+    from jax._src import distributed
+    from jax.experimental import multihost_utils
+
+    if distributed.global_state.preemption_sync_manager is None:
+        return False
+    return multihost_utils.reached_preemption_sync_point(int(step))
+
+
+# ----------------------------------------------------------------------------- failure detection
+
+_PEER_FAILURE_MARKERS = (
+    "gloo",
+    "nccl",
+    "connection closed by peer",
+    "connection reset",
+    "coordination service",
+    "heartbeat",
+    "barrier",
+    "deadline_exceeded",
+    "unavailable:",
+)
+
+
+def is_peer_failure(error: BaseException) -> bool:
+    """Whether ``error`` (or its cause) is a collective/coordination failure between processes."""
+    if jax.process_count() == 1:
+        return False
+    seen = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        if isinstance(error, PeerLostError):
+            return True
+        text = str(error).lower()
+        if any(marker in text for marker in _PEER_FAILURE_MARKERS):
+            return True
+        error = error.__cause__ or error.__context__
+    return False
+
+
+def raise_if_peer_failure(error: BaseException, hint: str = "") -> None:
+    """Raises :class:`PeerLostError` (with ``hint``) from ``error`` if it is a peer failure."""
+    if isinstance(error, PeerLostError) or not is_peer_failure(error):
+        return
+    raise PeerLostError(
+        f"{_where()}: lost contact with another process ({_first_line(error)}): it died or "
+        f"hung. Stopping instead of waiting. {hint}".strip()
+    ) from error
+
+
+def _first_line(error: BaseException) -> str:
+    text = str(error).strip().splitlines()
+    return text[0][:300] if text else type(error).__name__
+
+
+def _default_on_timeout(message: str) -> None:
+    print(f"error: {message}", file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    os._exit(EXIT_PEER_LOST)  # the main thread is stuck in a collective; no clean way out
+
+
+class ProgressWatchdog:
+    """Exits the process when training makes no progress for ``timeout_s`` seconds.
+
+    A peer that hangs while alive (stuck I/O, a deadlock) still sends
+    heartbeats, and the survivors would wait in the step's collective forever.
+    The trainer calls :meth:`step` after dispatching every step; it waits for
+    the *previous* step to finish (one step stays in flight) and restarts the
+    clock, so the clock measures real progress. The clock starts at
+    construction (the first step includes compilation). Exiting closes this
+    process's connections, which stops the peers' collectives in turn.
+
+    Active only in multi-process runs (``enabled=None``); elsewhere every call is
+    free. ``on_timeout(message)`` defaults to printing and ``os._exit(3)``.
+    """
+
+    def __init__(
+        self,
+        timeout_s: float | None = None,
+        hint: str = "",
+        enabled: bool | None = None,
+        on_timeout: Callable[[str], None] | None = None,
+        poll_s: float = 0.5,
+    ):
+        self.timeout_s = settings.step_timeout if timeout_s is None else float(timeout_s)
+        self.hint = hint
+        self.enabled = jax.process_count() > 1 if enabled is None else enabled
+        self._on_timeout = on_timeout or _default_on_timeout
+        self._pending = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._deadline: float | None = None
+        self._phase = "the first training step (includes compilation)"
+        self._thread = None
+        if self.enabled:
+            self._arm(self._phase)
+            self._thread = threading.Thread(
+                target=self._watch, args=(poll_s,), name="gac-watchdog", daemon=True
+            )
+            self._thread.start()
+
+    def _arm(self, phase: str) -> None:
+        with self._lock:
+            self._phase = phase
+            self._deadline = time.monotonic() + self.timeout_s
+
+    def _watch(self, poll_s: float) -> None:
+        while not self._stop.wait(poll_s):
+            with self._lock:
+                expired = self._deadline is not None and time.monotonic() > self._deadline
+                phase = self._phase
+            if expired:
+                self._stop.set()
+                self._on_timeout(
+                    f"{_where()}: no progress for {self.timeout_s:g} s while waiting for "
+                    f"{phase}; another process probably hung or died. Stopping instead of "
+                    f"waiting forever (timeout: --step-timeout / GAC_STEP_TIMEOUT). {self.hint}"
+                )
+
+    def step(self, step: int, outputs: Any) -> None:
+        """After dispatching step ``step`` (outputs: any of its results)."""
+        if not self.enabled:
+            return
+        if self._pending is not None:
+            jax.block_until_ready(self._pending)
+        self._pending = outputs
+        self._arm(f"training step {step} to finish")
+
+    @contextlib.contextmanager
+    def paused(self) -> Iterator[None]:
+        """No deadline inside (work with its own timeout); the clock restarts after."""
+        if not self.enabled:
+            yield
+            return
+        if self._pending is not None:
+            jax.block_until_ready(self._pending)
+            self._pending = None
+        with self._lock:
+            self._deadline = None
+        try:
+            yield
+        finally:
+            self._arm("the next training step")
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def __enter__(self) -> ProgressWatchdog:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
