@@ -12,7 +12,6 @@ from pathlib import Path
 
 import jax
 import numpy as np
-import optax
 import pytest
 
 from gac_jax import geometry, parallel
@@ -77,18 +76,23 @@ def planar_batch(batch_size: int, height: int = 64, width: int = 224) -> dict:
     images = rng.normal(0, 0.3, (batch_size, height, width, 3)).astype(np.float32)
     images += (np.log(depth) / 4.0)[None, :, :, None]  # the texture darkens with depth
     keep = rng.random((batch_size, height, width)) < 0.3
-    return {
+    return {  # the loader's depth batch layout (frame ids aside)
         "image": images,
         "P2": np.repeat(P[None], batch_size, 0),
         "depth": np.where(keep, depth[None], 0.0).astype(np.float32),
+        "image_transform": np.repeat(np.eye(3, dtype=np.float32)[None], batch_size, 0),
+        "original_size": np.full((batch_size, 2), (height, width), np.int32),
     }
 
 
-def test_train_step_compiles_once_and_learns_a_fixed_batch(depth_root):
+def test_train_step_compiles_once_and_learns_a_fixed_batch(depth_root, tmp_path):
+    """The trainer's step (its optimizer, its prior, its batch layout) on a fixed planar batch."""
     config = tiny_config(depth_root)
     mesh = parallel.make_mesh(jax.devices()[:1])
-    model = depth.build_model(config, prior_mean=float(np.log(20.0)))
-    tx = optax.adam(2e-3)
+    source = depth.train_source(config, depth_root)
+    prior = depth.load_or_compute_prior_mean(config, source, tmp_path)
+    model = depth.build_model(config, prior)
+    _, tx = depth.optimizer(config, total_steps=STEPS, steps_per_epoch=1)
     state, sharding = create_train_state(depth.init_variables(model, config, 0), tx, 0, mesh)
     step = depth.make_train_step(model, tx, depth.loss_options(config), mesh, sharding)
     batch = parallel.to_global(planar_batch(2), mesh)
@@ -98,7 +102,7 @@ def test_train_step_compiles_once_and_learns_a_fixed_batch(depth_root):
         losses.append(float(metrics["loss"]))
     assert step._cache_size() == 1
     assert np.all(np.isfinite(losses))
-    assert np.mean(losses[-3:]) < 0.5 * losses[0], losses
+    assert np.mean(losses[-3:]) < 0.6 * losses[0], losses
     assert float(metrics["valid/scale_1"]) == float((batch["depth"] > 0.1).sum())
 
 

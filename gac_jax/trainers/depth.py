@@ -218,6 +218,19 @@ def init_variables(model: DepthUNet, config, seed: int) -> dict:
     return variables
 
 
+def optimizer(config, total_steps: int, steps_per_epoch: int):
+    """``(schedule, tx)``: Adam(W) with clipping on the configured (per-epoch) cosine."""
+    t = config.train
+    schedule = learning_rate_schedule(
+        t.learning_rate,
+        t.final_learning_rate,
+        total_steps,
+        steps_per_epoch if t.per_epoch_schedule else None,
+        t.warmup_steps,
+    )
+    return schedule, make_optimizer(schedule, t.clip_norm, t.weight_decay)
+
+
 def make_train_step(model, tx, loss_opts: dict, mesh, state_sharding):
     def train_step(state: TrainState, batch: dict):
         def loss_fn(params):
@@ -285,14 +298,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
 
     # Model and optimizer.
     model = build_model(config, prior_mean)
-    schedule = learning_rate_schedule(
-        config.train.learning_rate,
-        config.train.final_learning_rate,
-        total_steps,
-        steps_per_epoch if config.train.per_epoch_schedule else None,
-        config.train.warmup_steps,
-    )
-    tx = make_optimizer(schedule, config.train.clip_norm, config.train.weight_decay)
+    schedule, tx = optimizer(config, total_steps, steps_per_epoch)
     state, state_sharding = create_train_state(
         init_variables(model, config, config.seed), tx, config.seed, mesh
     )
