@@ -10,6 +10,9 @@ Compilation is timed separately (first call); the step times are medians of ``--
 calls on random inputs with a KITTI projection. Prints a JSON record (``--json OUT`` saves it).
 
     python benchmarks/bench_depth.py [--variant ''|base|reference] [--train-batches 1,2]
+    python benchmarks/bench_depth.py --config configs/depth_default.py --train-batches 8
+
+``--config`` times another depth config at its own input size (e.g. the CPU default run).
 """
 
 from __future__ import annotations
@@ -65,23 +68,31 @@ def machine() -> dict:
     }
 
 
-def timed(fn, repeats: int) -> tuple[float, float, list[float]]:
-    """(first-call seconds = compile + run, median of the next ``repeats`` calls, all times)."""
+def timed(fn, repeats: int) -> tuple[float, float, list[float], float]:
+    """(first call = compile + run, median wall time of the next ``repeats`` calls, those wall
+    times, median CPU seconds of this process (all threads) per call).
+
+    On a shared machine the CPU time is the steadier figure: wall ~ CPU / usable cores.
+    """
     t0 = time.perf_counter()
     jax.block_until_ready(fn())
     first = time.perf_counter() - t0
-    times = []
+    times, cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         jax.block_until_ready(fn())
         times.append(time.perf_counter() - t0)
-    return first, statistics.median(times), times
+        cpu.append(time.process_time() - c0)
+    return first, statistics.median(times), times, statistics.median(cpu)
 
 
-def inputs(batch: int, height: int, width: int, seed: int = 0):
+def inputs(config, batch: int, width: int, seed: int = 0):
+    """Random images and sparse depth with the KITTI projection of the config's input view."""
+    height = config.data.height
     rng = np.random.default_rng(seed)
     images = rng.normal(size=(batch, height, width, 3)).astype(np.float32)
-    P = np.repeat(P_CROP[None].astype(np.float32), batch, 0)
+    scale = np.diag([height / config.data.crop_height] * 2 + [1.0])
+    P = np.repeat((scale @ P_CROP)[None].astype(np.float32), batch, 0)
     z = rng.uniform(3.0, 80.0, (batch, height, width)).astype(np.float32)
     gt = np.where(rng.random((batch, height, width)) < 0.15, z, 0.0).astype(np.float32)
     return images, P, gt
@@ -89,15 +100,16 @@ def inputs(batch: int, height: int, width: int, seed: int = 0):
 
 def bench_inference(config, model, variables, repeats: int) -> dict:
     d = config.data
-    images, P, _ = inputs(1, d.height, d.eval_width)
+    images, P, _ = inputs(config, 1, d.eval_width)
     predict = jax.jit(lambda v, x, p: model.apply(v, x, p, train=False)["log_depth"]["scale_1"])
-    first, median, times = timed(lambda: predict(variables, images, P), repeats)
+    first, median, times, cpu = timed(lambda: predict(variables, images, P), repeats)
     return {
         "input": [1, d.height, d.eval_width, 3],
         "compile_plus_first_s": first,
         "compile_s_estimate": first - median,
         "median_s": median,
         "frames_per_s": 1.0 / median,
+        "median_cpu_s": cpu,
         "times_s": times,
     }
 
@@ -110,7 +122,7 @@ def bench_train(config, model, variables, batch: int, repeats: int) -> dict:
     host = jax.tree.map(np.asarray, variables)
     state, sharding = create_train_state(host, tx, 0, mesh)
     step = depth.make_train_step(model, tx, depth.loss_options(config), mesh, sharding)
-    images, P, gt = inputs(batch, d.height, d.width, seed=batch)
+    images, P, gt = inputs(config, batch, d.width, seed=batch)
     arrays = parallel.to_global({"image": images, "P2": P, "depth": gt}, mesh)
     holder = {"state": state}
 
@@ -118,7 +130,7 @@ def bench_train(config, model, variables, batch: int, repeats: int) -> dict:
         holder["state"], metrics = step(holder["state"], arrays)
         return metrics["loss"]
 
-    first, median, times = timed(run, repeats)
+    first, median, times, cpu = timed(run, repeats)
     return {
         "batch": batch,
         "input": [batch, d.height, d.width, 3],
@@ -126,20 +138,22 @@ def bench_train(config, model, variables, batch: int, repeats: int) -> dict:
         "compile_s_estimate": first - median,
         "median_step_s": median,
         "images_per_s": batch / median,
+        "median_cpu_s": cpu,
         "times_s": times,
     }
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--variant", default="", help="depth_kitti.py variant: '', base, reference")
+    parser.add_argument("--config", default=str(REPO / "configs" / "depth_kitti.py"))
+    parser.add_argument("--variant", default="", help="config variant: '', base, reference")
     parser.add_argument("--repeats", type=int, default=10, help="timed inference calls")
     parser.add_argument("--train-repeats", type=int, default=5, help="timed train steps")
     parser.add_argument("--train-batches", default="1,2", help="comma-separated batch sizes")
     parser.add_argument("--json", help="also write the record here")
     args = parser.parse_args(argv)
 
-    spec = str(REPO / "configs" / "depth_kitti.py") + (f":{args.variant}" if args.variant else "")
+    spec = args.config + (f":{args.variant}" if args.variant else "")
     config = load_config(spec)
     model = depth.build_model(config, prior_mean=2.6)
     t0 = time.perf_counter()
@@ -150,7 +164,7 @@ def main(argv=None) -> int:
         "machine": machine(),
         "model": {
             "config": spec.split("/")[-1],
-            "encoder": f"ResNet-{config.model.encoder_depth}",
+            "encoder": f"ResNet-{config.model.encoder_depth} width {config.model.encoder_width}",
             "use_gac": config.model.use_gac,
             "decoder_conv": config.model.decoder_conv,
             "parameters": int(params),
