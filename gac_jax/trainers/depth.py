@@ -182,12 +182,12 @@ def load_or_compute_prior_mean(config, source, workdir: Path) -> float:
     """
     path = workdir / PRIOR_FILE
     if not path.exists() and jax.process_index() == 0:
-        n = len(source)
-        limit = config.model.prior_max_frames
+        n, limit = len(source), config.model.prior_max_frames
         index = np.arange(n) if not limit or limit >= n else np.linspace(0, n - 1, limit)
-        maps = (ground_truth_depth(source, int(i)) for i in np.unique(index.round()))
+        picked = np.unique(index.round().astype(np.int64))
+        maps = (ground_truth_depth(source, int(i)) for i in picked)
         value = mean_log_depth(maps, config.loss.min_depth, config.loss.max_depth)
-        record = {"prior_mean": value, "num_items": int(len(np.unique(index.round())))}
+        record = {"prior_mean": value, "num_items": len(picked)}
         with atomic_write(path) as f:
             json.dump(record, f, indent=2)
     if jax.process_count() > 1:
