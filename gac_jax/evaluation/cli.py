@@ -2,6 +2,8 @@
 
     python evaluate.py --task detect3d --label-dir L --result-dir R [--split-file F] [--json OUT]
     python evaluate.py --task depth --groundtruth-dir G --prediction-dir P [--json OUT]
+    python evaluate.py --task depth --workdir W [--data DIR] [--split S] [--step N] [--out DIR]
+    python evaluate.py --task depth --baseline ground-plane (--data DIR | --workdir W)
 
 The offline scorers are plain functions returning the result dict
 (:func:`evaluate_detection_folders`, :func:`evaluate_depth_folders`); a mode that
@@ -144,6 +146,15 @@ def build_parser() -> argparse.ArgumentParser:
     dep = parser.add_argument_group("--task depth")
     dep.add_argument("--groundtruth-dir", help="folder of 16-bit ground-truth depth PNGs")
     dep.add_argument("--prediction-dir", help="folder of 16-bit predicted depth PNGs (same paths)")
+    # Depth model mode (gac_jax/evaluation/depth_workdir.py).
+    dep.add_argument("--workdir", help="depth training workdir: run its model, write, score")
+    dep.add_argument("--baseline", choices=("ground-plane",), help="score a no-learning baseline")
+    dep.add_argument(
+        "--data", help="KITTI-depth root or depth_selection folder (default: workdir's)"
+    )
+    dep.add_argument("--split", help="split of a KITTI-depth root (default: val)")
+    dep.add_argument("--step", type=int, help="checkpoint step (default: the latest)")
+    dep.add_argument("--out", help="folder for the predicted 16-bit PNGs")
     return parser
 
 
@@ -163,6 +174,10 @@ def _run_detect3d(args, parser) -> dict:
 
 
 def _run_depth(args, parser) -> dict:
+    if args.workdir or args.baseline:
+        from gac_jax.evaluation import depth_workdir
+
+        return depth_workdir.run(args)
     if not args.groundtruth_dir or not args.prediction_dir:
         parser.error("--task depth needs --groundtruth-dir and --prediction-dir")
     metrics, count = evaluate_depth_folders(args.groundtruth_dir, args.prediction_dir)

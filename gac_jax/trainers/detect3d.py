@@ -44,12 +44,14 @@ from gac_jax.train_state import (
     learning_rate_schedule,
     make_optimizer,
 )
-from gac_jax.trainers.common import prepare_dataset
-
-
-class NonFiniteLossError(RuntimeError):
-    """Training produced NaN/inf; the last good checkpoint is kept."""
-
+from gac_jax.trainers.common import (
+    NonFiniteLossError,  # noqa: F401 - re-exported: callers catch detect3d.NonFiniteLossError
+    check_finite,
+    create_train_state,
+    host_variables,
+    prepare_dataset,
+    restore_latest,
+)
 
 # ----------------------------------------------------------------------------- pieces
 
@@ -294,7 +296,6 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     # Mesh.
     mesh = parallel.make_mesh()
     per_process_batch = parallel.check_batch_size(config.data.batch_size, mesh)
-    replicated = parallel.replicated(mesh)
 
     # Data.
     root = prepare_dataset(config.data)
@@ -334,21 +335,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     )
     tx = make_optimizer(schedule, config.train.clip_norm, config.train.weight_decay)
     variables = init_variables(model, config, config.seed)
-    state = jax.jit(
-        lambda v: TrainState.create(v["params"], v["batch_stats"], tx, config.seed),
-        out_shardings=replicated,
-    )(variables)
-    state_sharding = jax.tree.map(lambda _: replicated, state)
+    state, state_sharding = create_train_state(variables, tx, config.seed, mesh)
     del variables
 
     # Restore.
     checkpoints = Checkpoints(workdir, config.train.keep_checkpoints)
-    start_step = 0
-    if checkpoints.latest_step() is not None:
-        state, meta = checkpoints.restore(state)
-        start_step = int(meta["step"])
-        if is_main:
-            print(f"resumed from {checkpoints.directory} at step {start_step}", flush=True)
+    state, start_step, _ = restore_latest(checkpoints, state, announce=is_main)
 
     # Step and evaluator.
     train_step = make_train_step(
@@ -359,19 +351,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     progress = Progress(total_steps, start_step, config.data.batch_size, enabled=is_main)
 
     def save(step: int) -> None:
-        if bool(jax.device_get(state.nonfinite)):
-            raise NonFiniteLossError(
-                f"non-finite loss or gradient before step {step}; training stopped. The last good "
-                f"checkpoint (step {checkpoints.latest_step()}) in {checkpoints.directory} is kept."
-            )
+        check_finite(state, step, checkpoints)
         checkpoints.save(step, state, {"task": "detect3d", "epoch": step // steps_per_epoch})
 
     def run_evaluation(step: int) -> dict:
         # Local copies of the replicated weights: evaluation runs on this process alone.
-        variables = jax.tree.map(
-            lambda x: np.asarray(x.addressable_data(0)),
-            {"params": state.params, "batch_stats": state.batch_stats},
-        )
+        variables = host_variables(state)
         max_batches = config.train.eval_max_batches or None
         result_dir = workdir / "results" / f"step_{step}" / "data"
         out = evaluator.evaluate(variables, result_dir, resume=True, max_batches=max_batches)
@@ -397,12 +382,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
                 writer.write(step, kind="compile", compile_s=time.perf_counter() - compile_t0)
             if step % config.train.log_every == 0 or step == total_steps:
                 m = parallel.to_host(metrics)
-                if bool(jax.device_get(state.nonfinite)) or not np.isfinite(m["loss"]):
-                    raise NonFiniteLossError(
-                        f"non-finite loss at step {step} (loss={m['loss']}); training stopped. "
-                        f"The last good checkpoint (step {checkpoints.latest_step()}) in "
-                        f"{checkpoints.directory} is kept."
-                    )
+                check_finite(state, step, checkpoints, loss=m["loss"])
                 lr = float(schedule(step - 1))
                 stats = progress.update(
                     step,

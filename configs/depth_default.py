@@ -1,0 +1,72 @@
+"""Default depth config: the embedded generated dataset, sized for a 2-core CPU.
+
+    python train.py --task depth            # generates the dataset on first use
+
+Trains a small ground-aware depth U-Net (ResNet-34 encoder of base width 32, 96x320 input:
+the bottom 352 rows resized to 96, a random 320-column crop; both views of every training
+frame, photometric distortion, mirroring) for 5 epochs on the ``depth/`` folders of the
+embedded KITTI-format scenes (the detector's cache: ``data.source='synthetic'``), then
+evaluates itself on the left views of the generated val split: KITTI depth metrics, 16-bit
+PNGs and pictures under ``WORKDIR/results/step_N``. Evaluation sees the whole width
+(``eval_width`` 352 covers the 339 resized columns). Compare with the ground-plane baseline
+and the Base U-Net::
+
+    python evaluate.py --task depth --baseline ground-plane --workdir WORKDIR
+    python train.py --task depth --config configs/depth_default.py:base
+
+Variants: ``:tiny`` (tests, seconds), ``:base`` (no GAC, the "Base U-Net").
+"""
+
+from __future__ import annotations
+
+import ml_collections
+
+from gac_jax.config import REPO_CONFIGS, load_config
+
+
+def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
+    c = load_config(str(REPO_CONFIGS / "depth_kitti.py"))
+    c.data.source = "synthetic"
+    c.data.synthetic.num_frames = 1000  # same cache as configs/detect3d_default.py
+    c.data.synthetic.seed = 0
+    c.data.train_views = "both"
+    c.data.crop_height = 352
+    c.data.height = 96
+    c.data.width = 320
+    c.data.eval_width = 352
+    c.data.batch_size = 8
+    c.data.num_workers = 2
+    c.data.eval_batch_size = 8
+    c.model.encoder_depth = 34
+    c.model.encoder_width = 32
+    c.data.val_cameras = (2,)  # left views: half the evaluation time
+    c.train.num_epochs = 5
+    c.train.learning_rate = 4e-4
+    c.train.final_learning_rate = 4e-5
+    c.train.log_every = 20
+    c.train.checkpoint_every = 200
+
+    variants = set((arg or "").split(",")) - {""}
+    if "tiny" in variants:
+        c.data.synthetic.num_frames = 16
+        c.data.synthetic.height = 188
+        c.data.synthetic.width = 621
+        c.data.crop_height = 176
+        c.data.height = 64
+        c.data.width = 224
+        c.data.eval_width = 256
+        c.data.batch_size = 2
+        c.data.eval_batch_size = 2
+        c.data.num_workers = 0
+        c.model.encoder_depth = 18
+        c.model.encoder_width = 8
+        c.train.num_epochs = 1
+        c.train.log_every = 1
+        c.train.checkpoint_every = 2
+        c.eval.num_pictures = 1
+    if "base" in variants:
+        c.model.use_gac = False
+    unknown = variants - {"tiny", "base"}
+    if unknown:
+        raise ValueError(f"unknown variants {sorted(unknown)} (known: tiny, base)")
+    return c

@@ -1,0 +1,166 @@
+"""``evaluate.py``'s depth model mode: a trained depth workdir, or the ground-plane baseline.
+
+    python evaluate.py --task depth --workdir W [--data DIR] [--split val] [--step N]
+                       [--out DIR] [--json OUT]
+    python evaluate.py --task depth --baseline ground-plane (--data DIR | --workdir W)
+                       [--split val] [--out DIR] [--json OUT]
+
+``--data`` is a KITTI-depth root (frames of ``data_depth_annotated/<split>``) or a
+``depth_selection`` folder (``val_selection_cropped``, or the anonymous test set: PNGs are
+written, nothing is scored). Without it, the workdir's own evaluation data is used. The
+model mode writes 16-bit PNGs, pictures and ``metrics.json`` to ``--out`` (default
+``W/eval/step_N_<split>``); the baseline writes PNGs only when ``--out`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import jax
+import ml_collections
+
+from gac_jax.checkpointing import Checkpoints
+from gac_jax.data import transforms
+from gac_jax.data.files import KittiFormatError, atomic_write
+from gac_jax.evaluation.depth_evaluator import (
+    BASELINE_CAMERA_HEIGHT,
+    BASELINE_MAX_DEPTH,
+    DepthEvaluator,
+    GroundPlanePredictor,
+    NetworkPredictor,
+)
+from gac_jax.evaluation.depth_metrics import format_depth_table
+from gac_jax.train_state import TrainState, learning_rate_schedule, make_optimizer
+
+BASELINES = ("ground-plane",)
+
+
+def load_workdir_config(workdir: str | Path) -> ml_collections.ConfigDict:
+    """The resolved config a depth run saved in ``WORKDIR/config.json``."""
+    path = Path(workdir) / "config.json"
+    if not path.is_file():
+        raise KittiFormatError(path, "no config.json: not a training workdir")
+    return ml_collections.ConfigDict(json.loads(path.read_text()))
+
+
+def restore_depth_model(workdir: str | Path, step: int | None = None):
+    """``(config, model, variables, step)`` of a depth workdir's checkpoint (default: latest).
+
+    The train state is restored into a template built with ``jax.eval_shape`` (nothing is
+    initialised); only ``params`` and ``batch_stats`` are returned, as host arrays.
+    """
+    from gac_jax.trainers import depth as trainer
+
+    workdir = Path(workdir)
+    config = load_workdir_config(workdir)
+    try:
+        prior_mean = trainer.read_prior_mean(workdir)
+    except FileNotFoundError as e:
+        raise KittiFormatError(workdir / trainer.PRIOR_FILE, str(e)) from None
+    model = trainer.build_model(config, prior_mean)
+    # The optimizer only shapes the template's opt_state: any schedule of the same kind.
+    tx = make_optimizer(
+        learning_rate_schedule(1.0, 1.0, 1), config.train.clip_norm, config.train.weight_decay
+    )
+    abstract = jax.eval_shape(
+        lambda: TrainState.create(**trainer.init_variables(model, config, 0), tx=tx, seed=0)
+    )
+    with Checkpoints(workdir) as checkpoints:
+        available = checkpoints.all_steps()
+        if not available or (step is not None and step not in available):
+            raise KittiFormatError(
+                checkpoints.directory,
+                f"no checkpoint {'at step ' + str(step) if step is not None else ''} "
+                f"(have {available})",
+            )
+        state, meta = checkpoints.restore(abstract, step)
+    variables = jax.tree.map(
+        jax.device_get, {"params": state.params, "batch_stats": state.batch_stats}
+    )
+    return config, model, variables, int(meta["step"])
+
+
+def _data_source(config, data: str | None, split: str | None):
+    from gac_jax.trainers import depth as trainer
+
+    if data is not None:
+        if not Path(data).exists():
+            raise KittiFormatError(data, "data folder not found")
+        cameras = tuple(config.data.val_cameras) if config is not None else (2, 3)
+        return trainer.open_eval_data(Path(data), split or "val", cameras)
+    return trainer.eval_source(config, trainer.depth_root(config.data), split)
+
+
+def _tag(source, split: str | None) -> str:
+    """Names an evaluation: the selection folder's name, or the split."""
+    items = getattr(source, "items", None)
+    if items:
+        return items[0].image.parent.parent.name
+    return split or getattr(source, "split", "val")
+
+
+def evaluate_workdir(
+    workdir: str | Path,
+    data: str | None = None,
+    split: str | None = None,
+    step: int | None = None,
+    out: str | Path | None = None,
+) -> dict:
+    """Runs a trained depth model over a split; returns the evaluator's result dict."""
+    from gac_jax.trainers import depth as trainer
+
+    config, model, variables, step = restore_depth_model(workdir, step)
+    source = _data_source(config, data, split)
+    out = Path(out) if out else Path(workdir) / "eval" / f"step_{step}_{_tag(source, split)}"
+    evaluator = trainer.make_evaluator(config, source)
+    result = evaluator.evaluate(NetworkPredictor(model, variables), out / "depth", out / "pictures")
+    result["step"] = step
+    with atomic_write(out / "metrics.json") as f:
+        json.dump(result, f, indent=2)
+    print(
+        f"{result['num_frames']} frames, step {step} of {workdir}, predictions in {out / 'depth'}"
+    )
+    return result
+
+
+def evaluate_baseline(
+    name: str = "ground-plane",
+    data: str | None = None,
+    split: str | None = None,
+    workdir: str | Path | None = None,
+    out: str | Path | None = None,
+) -> dict:
+    """Scores a no-learning baseline (:data:`BASELINES`) on a split's original-size GT."""
+    if name not in BASELINES:
+        raise ValueError(f"unknown baseline {name!r} (known: {', '.join(BASELINES)})")
+    if data is None and workdir is None:
+        raise ValueError("the baseline needs --data or --workdir (whose data it then uses)")
+    config = load_workdir_config(workdir) if workdir is not None else None
+    source = _data_source(config, data, split)
+    # The baseline reads only P2 and the geometry: a small fixed view keeps batches cheap.
+    view = transforms.Compose([transforms.Resize(32, 128)])
+    evaluator = DepthEvaluator(source, view, batch_size=8, num_pictures=0)
+    predictor = GroundPlanePredictor(BASELINE_CAMERA_HEIGHT, BASELINE_MAX_DEPTH)
+    result = evaluator.evaluate(predictor, Path(out) if out else None, resume=False)
+    result["baseline"] = {
+        "name": name,
+        "camera_height": BASELINE_CAMERA_HEIGHT,
+        "max_depth": BASELINE_MAX_DEPTH,
+    }
+    print(f"{result['num_frames']} frames, {name} baseline")
+    return result
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Dispatch of ``evaluate.py --task depth --workdir/--baseline``; prints the table."""
+    if args.baseline:
+        result = evaluate_baseline(args.baseline, args.data, args.split, args.workdir, args.out)
+    else:
+        result = evaluate_workdir(args.workdir, args.data, args.split, args.step, args.out)
+    if result["metrics"]:
+        print(format_depth_table(result["metrics"], result["num_scored"]), end="")
+    else:
+        print("no ground truth: predictions written, nothing scored")
+    return result

@@ -1,0 +1,365 @@
+"""Trainer of the ground-aware depth U-Net: ``python train.py --task depth``.
+
+Top to bottom: config -> mesh -> data -> prior mean -> model/optimizer -> restore ->
+jitted step -> evaluator -> loop. One ``jax.jit`` train step over a ``Mesh(('data',))``
+(batch sharded, parameters replicated), as the detection trainer.
+
+Data: a KITTI-depth root (``data_depth_annotated/{train,val}`` + ``raw``; ``data.source =
+'kitti'``) or the embedded generated scenes (``'synthetic'``: ``ROOT/depth`` of the dataset
+:func:`~gac_jax.trainers.common.prepare_dataset` generates, the detector's cache).
+Training views: cameras 2 and 3, either both as items (``data.train_views='both'``) or one
+random view per frame and epoch (``'random'``, the reference; :mod:`gac_jax.data.view_sampling`).
+Transforms: keep the bottom ``crop_height`` rows, resize to ``height`` rows when smaller
+(aspect kept; sparse GT resampled without mixing values), a random ``width``-column crop,
+photometric distortion, horizontal flip (P mirrored) in training; the left ``eval_width``
+columns (zero-padded when narrower) at test time.
+
+The network regresses log depth around a constant ``prior_mean``: the mean log GT depth of
+the training split (:func:`~gac_jax.models.depth_unet.mean_log_depth`), computed once and
+kept in ``WORKDIR/prior_mean.json`` so a resumed run and ``evaluate.py`` use the same value.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from gac_jax import parallel
+from gac_jax.checkpointing import Checkpoints
+from gac_jax.config import save_config
+from gac_jax.data import transforms
+from gac_jax.data.files import KittiFormatError, atomic_write
+from gac_jax.data.kitti_depth import list_selection
+from gac_jax.data.loader import DepthArrays, Loader
+from gac_jax.data.sources import KittiDepthSelectionSource, open_depth_source
+from gac_jax.data.view_sampling import RandomViewLoader, view_groups
+from gac_jax.depth_loss import depth_loss
+from gac_jax.evaluation.depth_evaluator import DepthEvaluator, NetworkPredictor, ground_truth_depth
+from gac_jax.evaluation.depth_metrics import format_depth_table
+from gac_jax.metrics_writer import MetricsWriter, Progress
+from gac_jax.models.depth_unet import DepthUNet, mean_log_depth
+from gac_jax.train_state import (
+    TrainState,
+    apply_gradients_guarded,
+    learning_rate_schedule,
+    make_optimizer,
+)
+from gac_jax.trainers.common import (
+    NonFiniteLossError,  # noqa: F401 - re-exported: callers catch depth.NonFiniteLossError
+    check_finite,
+    create_train_state,
+    host_variables,
+    prepare_dataset,
+    restore_latest,
+)
+
+PRIOR_FILE = "prior_mean.json"
+
+# ----------------------------------------------------------------------------- pieces
+
+
+def depth_root(data: ml_collections.ConfigDict) -> Path:
+    """The KITTI-depth root of the config's ``data`` block (generating the embedded one)."""
+    root = prepare_dataset(data)
+    return root / "depth" if data.source == "synthetic" else root
+
+
+def _view_ops(d: ml_collections.ConfigDict) -> list:
+    ops: list = [transforms.CropBottomTo(d.crop_height)]
+    if d.height != d.crop_height:
+        ops.append(transforms.Resize(d.height))
+    return ops
+
+
+def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
+    d = config.data
+    ops = _view_ops(d) + [transforms.RandomCropWidth(d.width)]
+    if d.photometric:
+        ops.append(transforms.PhotometricDistort())
+    if d.flip_prob > 0:
+        ops.append(transforms.RandomHorizontalFlip(d.flip_prob))
+    ops.append(transforms.Normalize())
+    return transforms.Compose(ops)
+
+
+def eval_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
+    """Deterministic: bottom rows, resize, the left ``eval_width`` columns, normalise."""
+    d = config.data
+    return transforms.Compose(
+        _view_ops(d) + [transforms.CropOrPadWidth(d.eval_width), transforms.Normalize()]
+    )
+
+
+def build_model(config: ml_collections.ConfigDict, prior_mean: float) -> DepthUNet:
+    m = config.model
+    return DepthUNet(
+        depth=m.encoder_depth,
+        width=m.encoder_width,
+        use_gac=m.use_gac,
+        decoder_conv=m.decoder_conv,
+        intrinsics_mode=m.intrinsics_mode,
+        decoder_features=tuple(m.decoder_features) if m.decoder_features else None,
+        prior_mean=float(prior_mean),
+        baseline=m.gac.baseline,
+        camera_height=m.gac.camera_height,
+        object_height=m.gac.object_height,
+        offset_formula=m.gac.offset_formula,
+    )
+
+
+def loss_options(config: ml_collections.ConfigDict) -> dict:
+    """Keyword arguments of :func:`gac_jax.depth_loss.depth_loss` (plain Python values)."""
+    lc = config.loss
+    return {
+        "si_lambda": float(lc.si_lambda),
+        "min_depth": float(lc.min_depth),
+        "max_depth": float(lc.max_depth),
+        "residual_clip": float(lc.residual_clip),
+        "smooth_weight": float(lc.smooth_weight),
+        "edge_sharpness": float(lc.edge_sharpness),
+        "scale_weights": {k: float(v) for k, v in lc.scale_weights.items()},
+    }
+
+
+def train_source(config: ml_collections.ConfigDict, root: Path):
+    return open_depth_source(root, config.data.train_split, tuple(config.data.train_cameras))
+
+
+def eval_source(config: ml_collections.ConfigDict, root: Path, split: str | None = None):
+    """The evaluation source: ``data.val_selection`` (a ``depth_selection`` folder) if set,
+    else the ``split`` (default ``data.val_split``) folder of the KITTI-depth root."""
+    d = config.data
+    if split is None and d.get("val_selection"):
+        return KittiDepthSelectionSource(d.val_selection)
+    return open_eval_data(root, split or d.val_split, tuple(d.val_cameras))
+
+
+def open_eval_data(path: Path, split: str, cameras: tuple[int, ...]):
+    """A ``depth_selection`` folder (``image/`` + ``intrinsics/``) or a KITTI-depth root."""
+    path = Path(path)
+    if (path / "image").is_dir() and (path / "intrinsics").is_dir():
+        list_selection(path)  # validates the folder, naming the bad file
+        return KittiDepthSelectionSource(path)
+    return open_depth_source(path, split, cameras)
+
+
+def make_train_loader(config, source, per_process_batch: int) -> Loader:
+    d = config.data
+    kwargs = dict(
+        batch_size=per_process_batch,
+        seed=config.seed,
+        shard_index=jax.process_index(),
+        num_shards=jax.process_count(),
+        worker_count=d.num_workers,
+    )
+    if d.train_views == "random":
+        frames = getattr(source, "frames", None)
+        if frames is None:
+            raise KittiFormatError(
+                "<config>",
+                "data.train_views='random' needs a KITTI-depth folder (a prepared TFDS dataset "
+                "lists no frames); use data.train_views='both'",
+            )
+        return RandomViewLoader(
+            source, view_groups(frames), train_transform(config), DepthArrays(), **kwargs
+        )
+    if d.train_views != "both":
+        raise ValueError(f"data.train_views must be 'both' or 'random', got {d.train_views!r}")
+    return Loader(source, train_transform(config), DepthArrays(), **kwargs)
+
+
+def load_or_compute_prior_mean(config, source, workdir: Path) -> float:
+    """``prior_mean`` from ``WORKDIR/prior_mean.json``, or computed from the training GT.
+
+    Uses up to ``model.prior_max_frames`` items spread evenly over the split (0 = all) and
+    the loss's depth range; process 0 computes and writes, the others read.
+    """
+    path = workdir / PRIOR_FILE
+    if not path.exists() and jax.process_index() == 0:
+        n, limit = len(source), config.model.prior_max_frames
+        index = np.arange(n) if not limit or limit >= n else np.linspace(0, n - 1, limit)
+        picked = np.unique(index.round().astype(np.int64))
+        maps = (ground_truth_depth(source, int(i)) for i in picked)
+        value = mean_log_depth(maps, config.loss.min_depth, config.loss.max_depth)
+        record = {"prior_mean": value, "num_items": len(picked)}
+        with atomic_write(path) as f:
+            json.dump(record, f, indent=2)
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices("gac_jax_prior_mean_ready")
+    return float(json.loads(path.read_text())["prior_mean"])
+
+
+def read_prior_mean(workdir: Path) -> float:
+    path = Path(workdir) / PRIOR_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no prior mean (is this a depth training workdir?)")
+    return float(json.loads(path.read_text())["prior_mean"])
+
+
+def init_variables(model: DepthUNet, config, seed: int) -> dict:
+    d = config.data
+    images = jnp.zeros((1, d.height, d.width, 3), jnp.float32)
+    f = 721.5 * d.height / d.crop_height
+    P = jnp.asarray([[[f, 0, d.width / 2, 0], [0, f, d.height / 2, 0], [0, 0, 1, 0]]], jnp.float32)
+    variables = jax.jit(lambda k: model.init(k, images, P, train=False))(jax.random.key(seed))
+    variables = {"params": variables["params"], "batch_stats": variables.get("batch_stats", {})}
+    if config.model.pretrained_backbone:
+        from gac_jax.pretrained import init_backbone
+
+        variables = init_backbone(variables, config.model.pretrained_backbone)
+    return variables
+
+
+def optimizer(config, total_steps: int, steps_per_epoch: int):
+    """``(schedule, tx)``: Adam(W) with clipping on the configured (per-epoch) cosine."""
+    t = config.train
+    schedule = learning_rate_schedule(
+        t.learning_rate,
+        t.final_learning_rate,
+        total_steps,
+        steps_per_epoch if t.per_epoch_schedule else None,
+        t.warmup_steps,
+    )
+    return schedule, make_optimizer(schedule, t.clip_norm, t.weight_decay)
+
+
+def make_train_step(model, tx, loss_opts: dict, mesh, state_sharding):
+    def train_step(state: TrainState, batch: dict):
+        def loss_fn(params):
+            outputs, mutated = model.apply(
+                {"params": params, "batch_stats": state.batch_stats},
+                batch["image"],
+                batch["P2"],
+                train=True,
+                mutable=["batch_stats"],
+            )
+            loss, parts = depth_loss(
+                outputs["log_depth"], batch["depth"], batch["image"], **loss_opts
+            )
+            return loss, (parts, mutated["batch_stats"])
+
+        (loss, (parts, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            state.params
+        )
+        new_state, grad_norm = apply_gradients_guarded(state, tx, grads, batch_stats, loss)
+        return new_state, dict(parts, loss=loss, grad_norm=grad_norm)
+
+    return jax.jit(
+        train_step,
+        in_shardings=(state_sharding, parallel.data_sharded(mesh)),
+        out_shardings=(state_sharding, parallel.replicated(mesh)),
+        donate_argnums=(0,),
+    )
+
+
+def make_evaluator(config, source) -> DepthEvaluator:
+    return DepthEvaluator(
+        source,
+        eval_transform(config),
+        batch_size=config.data.eval_batch_size,
+        worker_count=config.data.num_workers,
+        num_pictures=config.eval.num_pictures,
+        max_depth=config.eval.picture_max_depth,
+    )
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
+    """Trains (resuming from ``workdir`` if it holds checkpoints) and evaluates on val."""
+    workdir = Path(workdir)
+    is_main = jax.process_index() == 0
+    if is_main:
+        workdir.mkdir(parents=True, exist_ok=True)
+        save_config(config, workdir)
+
+    # Mesh.
+    mesh = parallel.make_mesh()
+    per_process_batch = parallel.check_batch_size(config.data.batch_size, mesh)
+
+    # Data.
+    root = depth_root(config.data)
+    source = train_source(config, root)
+    loader = make_train_loader(config, source, per_process_batch)
+    steps_per_epoch = loader.steps_per_epoch
+    total_steps = config.train.num_steps or config.train.num_epochs * steps_per_epoch
+
+    # Prior mean (numpy, once; a constant of the compiled graph).
+    prior_mean = load_or_compute_prior_mean(config, source, workdir)
+
+    # Model and optimizer.
+    model = build_model(config, prior_mean)
+    schedule, tx = optimizer(config, total_steps, steps_per_epoch)
+    state, state_sharding = create_train_state(
+        init_variables(model, config, config.seed), tx, config.seed, mesh
+    )
+
+    # Restore.
+    checkpoints = Checkpoints(workdir, config.train.keep_checkpoints)
+    state, start_step, _ = restore_latest(checkpoints, state, announce=is_main)
+
+    # Step and evaluator.
+    train_step = make_train_step(model, tx, loss_options(config), mesh, state_sharding)
+    evaluator = make_evaluator(config, eval_source(config, root)) if is_main else None
+    writer = MetricsWriter(workdir, enabled=is_main, resume_step=start_step)
+    progress = Progress(total_steps, start_step, config.data.batch_size, enabled=is_main)
+
+    def save(step: int) -> None:
+        check_finite(state, step, checkpoints)
+        meta = {"task": "depth", "epoch": step // steps_per_epoch, "prior_mean": prior_mean}
+        checkpoints.save(step, state, meta)
+
+    def run_evaluation(step: int) -> dict:
+        out_dir = workdir / "results" / f"step_{step}"
+        out = evaluator.evaluate(
+            NetworkPredictor(model, host_variables(state)),
+            out_dir / "depth",
+            out_dir / "pictures",
+            resume=True,
+            max_batches=config.train.eval_max_batches or None,
+        )
+        if out["metrics"]:
+            print(format_depth_table(out["metrics"], out["num_scored"]), end="", flush=True)
+        writer.write(step, kind="eval", **out)
+        with atomic_write(out_dir / "metrics.json") as f:
+            json.dump(out, f, indent=2)
+        return out
+
+    # Loop.
+    compile_t0 = time.perf_counter()
+    step = start_step
+    try:
+        for batch in loader.iterate(start_step, total_steps - start_step):
+            state, metrics = train_step(state, parallel.to_global(batch, mesh))
+            step += 1
+            if step == start_step + 1:
+                jax.block_until_ready(metrics)
+                writer.write(step, kind="compile", compile_s=time.perf_counter() - compile_t0)
+            if step % config.train.log_every == 0 or step == total_steps:
+                m = parallel.to_host(metrics)
+                check_finite(state, step, checkpoints, loss=m["loss"])
+                stats = progress.update(step, float(m["loss"]), {"si_1": float(m["si/scale_1"])})
+                lr = float(schedule(step - 1))
+                writer.write(step, lr=lr, **{k: float(v) for k, v in m.items()}, **stats)
+            if step % config.train.checkpoint_every == 0 and step < total_steps:
+                save(step)
+            every = config.train.eval_every
+            if is_main and every and step % every == 0 and step < total_steps:
+                run_evaluation(step)
+    finally:
+        progress.close()
+    if step > start_step or checkpoints.latest_step() != step:
+        save(step)
+    checkpoints.wait()
+    result = run_evaluation(step) if is_main and config.train.eval_at_end else {}
+    checkpoints.close()
+    return result
