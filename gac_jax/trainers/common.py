@@ -65,10 +65,9 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
             width=s.width,
             val_fraction=s.val_fraction,
         )
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
+    from gac_jax import multiprocess
 
-        multihost_utils.sync_global_devices("gac_jax_dataset_ready")
+    multiprocess.barrier("dataset_ready")  # the others wait (with a timeout) for process 0
     return root
 
 
