@@ -29,6 +29,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.source = "synthetic"
     c.data.synthetic.num_frames = 1000  # same cache as configs/detect3d_default.py
     c.data.synthetic.seed = 0
+    c.data.synthetic.val_fraction = 0.3
     c.data.train_views = "both"
     c.data.crop_height = 352
     c.data.height = 96
