@@ -2,6 +2,8 @@
 
     python evaluate.py --task detect3d --label-dir L --result-dir R [--split-file F] [--json OUT]
     python evaluate.py --task depth --groundtruth-dir G --prediction-dir P [--json OUT]
+    python evaluate.py --task detect3d --workdir W [--step N] ...   # model mode, see
+        gac_jax/evaluation/detection_model_eval.py
 
 The offline scorers are plain functions returning the result dict
 (:func:`evaluate_detection_folders`, :func:`evaluate_depth_folders`); a mode that
@@ -23,6 +25,7 @@ from gac_jax.data.files import KittiFormatError, atomic_write, read_depth_png
 from gac_jax.data.kitti import KittiObjects, read_label, read_split
 from gac_jax.evaluation.depth_metrics import DepthMetricAccumulator, format_depth_table
 from gac_jax.evaluation.kitti_object import CLASSES, evaluate_detections, format_table
+from gac_jax.evaluation.model_mode import add_model_mode_arguments
 
 EXIT_INVALID_INPUT = 2
 
@@ -144,10 +147,15 @@ def build_parser() -> argparse.ArgumentParser:
     dep = parser.add_argument_group("--task depth")
     dep.add_argument("--groundtruth-dir", help="folder of 16-bit ground-truth depth PNGs")
     dep.add_argument("--prediction-dir", help="folder of 16-bit predicted depth PNGs (same paths)")
+    add_model_mode_arguments(parser)
     return parser
 
 
 def _run_detect3d(args, parser) -> dict:
+    if args.workdir:
+        from gac_jax.evaluation.detection_model_eval import run_model_mode
+
+        return run_model_mode(args, parser)
     if not args.label_dir or not args.result_dir:
         parser.error("--task detect3d needs --label-dir and --result-dir")
     classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
