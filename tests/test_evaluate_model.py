@@ -103,6 +103,11 @@ def test_resume_redoes_only_the_missing_frame(workdir_copy, capsys):
     code, _, err = run([*argv, "eval.score_threshold=0.5"], capsys)
     assert code == 2 and "run.json" in err and "eval differ" in err
     assert {p.name: p.stat().st_mtime_ns for p in data.glob("*.txt")} == after
+    # A moved workdir still resumes (its own checkpoints are identified by step).
+    moved = wd.parent / "moved"
+    shutil.move(wd, moved)
+    code, out, err = run(["--task", "detect3d", "--workdir", moved], capsys)
+    assert code == 0 and "13 frames (13 already done)" in out, err
 
 
 def test_converted_weights_with_priors_computed_on_the_fly(
@@ -148,7 +153,12 @@ def test_errors_name_the_file_and_the_remedy(tiny_detect3d_workdir, tmp_path, ca
     error(["--workdir", bare, "model.cls_features=24"], "does not fit the model", "head")
     error(["--workdir", bare, "model.nope=1"], "unknown config key")
     error(["--workdir", bare, "--checkpoint", tmp_path / "none"], "no converted weights")
-    with pytest.raises(SystemExit) as exit_info:
-        cli.main(["--task", "detect3d", "--workdir", str(bare), "--checkpoint", "x", "--step", "1"])
-    assert exit_info.value.code == 2
-    capsys.readouterr()
+    for argv in (
+        ["--workdir", bare, "--checkpoint", "x", "--step", 1],
+        ["--workdir", bare, "--threads", 0],
+        ["--label-dir", bare, "--result-dir", bare, "--step", 1],  # offline mode
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            cli.main(["--task", "detect3d", *map(str, argv)])
+        assert exit_info.value.code == 2
+    assert "only apply with --workdir" in capsys.readouterr().err

@@ -25,7 +25,7 @@ from gac_jax.data.files import KittiFormatError, atomic_write, read_depth_png
 from gac_jax.data.kitti import KittiObjects, read_label, read_split
 from gac_jax.evaluation.depth_metrics import DepthMetricAccumulator, format_depth_table
 from gac_jax.evaluation.kitti_object import CLASSES, evaluate_detections, format_table
-from gac_jax.evaluation.model_mode import add_model_mode_arguments
+from gac_jax.evaluation.model_mode import add_model_mode_arguments, reject_model_mode_arguments
 
 EXIT_INVALID_INPUT = 2
 
@@ -156,6 +156,7 @@ def _run_detect3d(args, parser) -> dict:
         from gac_jax.evaluation.detection_model_eval import run_model_mode
 
         return run_model_mode(args, parser)
+    reject_model_mode_arguments(args, parser)
     if not args.label_dir or not args.result_dir:
         parser.error("--task detect3d needs --label-dir and --result-dir")
     classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())

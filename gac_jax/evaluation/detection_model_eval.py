@@ -46,7 +46,7 @@ from gac_jax.data.sources import open_object_source
 from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
 from gac_jax.evaluation.kitti_object import format_table
-from gac_jax.evaluation.model_mode import limit_cpu_threads, load_run_config
+from gac_jax.evaluation.model_mode import limit_cpu_threads, load_run_config, xla_thread_count
 from gac_jax.inference import PostprocessConfig
 from gac_jax.models.detector import Detector
 from gac_jax.trainers.common import prepare_dataset
@@ -69,7 +69,8 @@ class LoadedDetector:
       config: the run config; model: the Detector (compute ``dtype`` as asked);
       constants: anchors + priors; variables: ``{'params', 'batch_stats'}`` numpy;
       weights: where the weights came from (human-readable); tag: short name of
-        the weights for folder names (``step<N>`` or the converted folder's name).
+        the weights for folder names (``step<N>`` or the converted folder's name);
+      step: the workdir checkpoint's step (None for converted weights).
     """
 
     config: ml_collections.ConfigDict
@@ -78,6 +79,7 @@ class LoadedDetector:
     variables: dict[str, Any]
     weights: str
     tag: str
+    step: int | None = None
 
 
 def postprocess_config(config: ml_collections.ConfigDict) -> PostprocessConfig:
@@ -198,7 +200,7 @@ def load_detector(
         )
     variables, step = _restore_workdir_weights(workdir, step, template)
     return LoadedDetector(
-        config, model, constants, variables, f"step {step} of {workdir}", f"step{step}"
+        config, model, constants, variables, f"step {step} of {workdir}", f"step{step}", step
     )
 
 
@@ -206,7 +208,8 @@ def run_settings(detector: LoadedDetector, split: str, root: Path, dtype) -> dic
     """What the result files of a run depend on (compared when resuming)."""
     c = detector.config
     return {
-        "weights": detector.weights,
+        # the workdir's own checkpoints by step (the workdir may move), converted ones by path
+        "weights": detector.tag if detector.step is not None else detector.weights,
         "split": split,
         "data_root": str(Path(root).resolve()),
         "dtype": jnp.dtype(dtype).name,
@@ -329,6 +332,7 @@ def evaluate_detector_workdir(
         compile_s = evaluator.compile(detector.variables, size)
     result = evaluator.evaluate(detector.variables, result_dir, resume=True)
     speed = timing_summary(result["timings"], evaluator.batch_timings)
+    threads = xla_thread_count() or threads  # the compute threads XLA actually started
     print(format_table(result["metrics"]), end="")
     print(format_timing(speed, compile_s, threads), end="", flush=True)
     pictures = save_evaluation_pictures(

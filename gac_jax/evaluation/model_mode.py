@@ -51,6 +51,23 @@ def add_model_mode_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("overrides", nargs="*", help="config overrides key.sub=value (model mode)")
 
 
+MODEL_MODE_OPTIONS = (
+    "config", "data", "split", "step", "checkpoint", "batch_size", "threads", "overrides"
+)  # fmt: skip
+
+
+def reject_model_mode_arguments(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
+    """Offline mode: model-mode options without ``--workdir`` are an error, not ignored."""
+    given = [name for name in MODEL_MODE_OPTIONS if getattr(args, name, None)]
+    if getattr(args, "save_images", 0):
+        given.append("save_images")
+    if given:
+        flags = ", ".join(
+            "key=value overrides" if g == "overrides" else "--" + g.replace("_", "-") for g in given
+        )
+        parser.error(f"{flags} only apply with --workdir (model mode)")
+
+
 def backend_started() -> bool:
     from jax._src import xla_bridge
 

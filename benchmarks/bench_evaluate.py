@@ -1,0 +1,148 @@
+"""End-to-end speed of ``evaluate.py --task detect3d --workdir`` (predict + post-process + I/O).
+
+Runs the model mode's code path (:func:`gac_jax.evaluation.detection_model_eval.
+evaluate_detector_workdir`) on KITTI frames: by default the 13 real labelled frames of
+``../shared`` repeated (symlinks under new ids) to ``--frames`` frames, in a temporary
+folder. Weights are untrained (random initialisation, saved as converted weights), which
+is fine for timing; the score threshold is 0 so every one of the ``top_k`` candidates
+goes through NMS and hill climbing (an upper bound of the post-processing work).
+Priors are computed from the same frames (min count 1).
+
+Configs: ``paper`` = configs/detect3d_kitti.py (ResNet-101, 288x1280, batch 1);
+``default`` = configs/detect3d_default.py (ResNet-18, 96x432, its eval batch of 8).
+Each runs in float32 and with ``Detector(dtype=bfloat16)`` (float32 parameters).
+Reported: compile time (once, separately) and per-frame medians (means) of model,
+post-processing and I/O time, and end-to-end frames/s.
+
+    python benchmarks/bench_evaluate.py [--configs paper,default] [--dtypes float32,bfloat16]
+        [--frames 16] [--threads N] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+KITTI = REPO.parent / "shared" / "data" / "kitti_samples" / "object"
+CONFIGS = {
+    "paper": ("configs/detect3d_kitti.py", ["data.eval_batch_size=1"]),
+    "default": ("configs/detect3d_default.py", []),
+}
+
+
+def make_dataset(src: Path, dst: Path, frames: int) -> None:
+    """A KITTI folder of ``frames`` frames: the labelled frames of ``src`` repeated (symlinks)."""
+    ids = (src / "ImageSets" / "labeled.txt").read_text().split()
+    new_ids = [f"{i:06d}" for i in range(frames)]
+    for kind, ext in (("image_2", "png"), ("calib", "txt"), ("label_2", "txt")):
+        (dst / "training" / kind).mkdir(parents=True, exist_ok=True)
+        for i, new in enumerate(new_ids):
+            link = dst / "training" / kind / f"{new}.{ext}"
+            link.symlink_to(src / "training" / kind / f"{ids[i % len(ids)]}.{ext}")
+    (dst / "ImageSets").mkdir(parents=True, exist_ok=True)
+    (dst / "ImageSets" / "bench.txt").write_text("\n".join(new_ids) + "\n")
+
+
+def random_weights(config_spec: str, overrides: list[str], out: Path) -> None:
+    import jax
+    import numpy as np
+
+    from gac_jax.config import apply_overrides, load_config
+    from gac_jax.pretrained import save_converted
+    from gac_jax.trainers.detect3d import anchor_layout, build_model, init_variables
+
+    config = load_config(str(REPO / config_spec))
+    apply_overrides(config, overrides)
+    model = build_model(config, anchor_layout(config).anchors_per_cell)
+    variables = jax.tree.map(np.asarray, init_variables(model, config, seed=0))
+    save_converted(out, variables, {"kind": "gac_detector", "model": {}})
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--configs", default="paper,default")
+    parser.add_argument("--dtypes", default="float32,bfloat16")
+    parser.add_argument("--frames", type=int, default=16)
+    parser.add_argument("--threads", type=int, help="XLA CPU threads (default: all usable)")
+    parser.add_argument(
+        "--data", type=Path, default=KITTI, help="KITTI object root (labeled split)"
+    )
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args(argv)
+
+    from gac_jax.evaluation.model_mode import limit_cpu_threads
+
+    threads = limit_cpu_threads(args.threads)
+    import jax.numpy as jnp
+
+    from gac_jax.evaluation.detection_model_eval import evaluate_detector_workdir
+
+    load = os.getloadavg()
+    print(
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {threads} XLA "
+        f"threads, load average {load[0]:.2f}; {args.frames} frames from {args.data}",
+        flush=True,
+    )
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_evaluate_") as tmp:
+        tmp = Path(tmp)
+        make_dataset(args.data, tmp / "kitti", args.frames)
+        for name in args.configs.split(","):
+            spec, extra = CONFIGS[name]
+            overrides = [
+                "data.source=kitti",
+                f"data.root={tmp / 'kitti'}",
+                "data.train_split=bench",
+                "data.val_split=bench",
+                "data.use_right_image=False",
+                "anchors.prior_min_count=1",
+                "eval.score_threshold=0.0",
+                *extra,
+            ]
+            weights = tmp / f"weights_{name}"
+            random_weights(spec, overrides, weights)
+            for dtype_name in args.dtypes.split(","):
+                print(f"\n=== {name} ({spec}), {dtype_name} ===", flush=True)
+                summary = evaluate_detector_workdir(
+                    tmp / f"wd_{name}",
+                    config_spec=str(REPO / spec),
+                    overrides=overrides,
+                    checkpoint=weights,
+                    threads=threads,
+                    dtype=getattr(jnp, dtype_name),
+                    out_dir=tmp / f"wd_{name}" / f"eval_{dtype_name}",
+                )
+                rows.append(
+                    {
+                        "config": name,
+                        "dtype": dtype_name,
+                        "compile_s": summary["compile_s"],
+                        **summary["speed"],
+                    }
+                )
+    load = os.getloadavg()
+    print(f"\nload average at the end {load[0]:.2f}")
+    header = (
+        "config   dtype     compile s  model ms  post ms  io ms  frames/s   (medians per frame)"
+    )
+    print(header)
+    for r in rows:
+        print(
+            f"{r['config']:8s} {r['dtype']:9s} {r['compile_s']:9.1f} {r['model_ms_median']:9.1f} "
+            f"{r['postprocess_ms_median']:8.1f} {r['io_ms_median']:6.1f} {r['frames_per_s']:9.2f}"
+        )
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
