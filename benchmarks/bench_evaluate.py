@@ -12,10 +12,11 @@ Configs: ``paper`` = configs/detect3d_kitti.py (ResNet-101, 288x1280, batch 1);
 ``default`` = configs/detect3d_default.py (ResNet-18, 96x432, its eval batch of 8).
 Each runs in float32 and with ``Detector(dtype=bfloat16)`` (float32 parameters).
 Reported: compile time (once, separately) and per-frame medians (means) of model,
-post-processing and I/O time, and end-to-end frames/s.
+post-processing and I/O time, end-to-end frames/s, and the process's CPU time per wall
+second (at most the thread count; lower means other processes took cores).
 
     python benchmarks/bench_evaluate.py [--configs paper,default] [--dtypes float32,bfloat16]
-        [--frames 16] [--threads N] [--json OUT]
+        [--frames 16] [--default-frames 64] [--threads N] [--json OUT]
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import os
 import platform
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -70,7 +72,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--configs", default="paper,default")
     parser.add_argument("--dtypes", default="float32,bfloat16")
-    parser.add_argument("--frames", type=int, default=16)
+    parser.add_argument("--frames", type=int, default=16, help="frames of the paper config")
+    parser.add_argument("--default-frames", type=int, default=64, help="of the default config")
     parser.add_argument("--threads", type=int, help="XLA CPU threads (default: all usable)")
     parser.add_argument(
         "--data", type=Path, default=KITTI, help="KITTI object root (labeled split)"
@@ -88,18 +91,19 @@ def main(argv=None) -> int:
     load = os.getloadavg()
     print(
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {threads} XLA "
-        f"threads, load average {load[0]:.2f}; {args.frames} frames from {args.data}",
+        f"threads, load average {load[0]:.2f}; frames from {args.data}",
         flush=True,
     )
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_evaluate_") as tmp:
         tmp = Path(tmp)
-        make_dataset(args.data, tmp / "kitti", args.frames)
         for name in args.configs.split(","):
             spec, extra = CONFIGS[name]
+            data = tmp / f"kitti_{name}"
+            make_dataset(args.data, data, args.frames if name == "paper" else args.default_frames)
             overrides = [
                 "data.source=kitti",
-                f"data.root={tmp / 'kitti'}",
+                f"data.root={data}",
                 "data.train_split=bench",
                 "data.val_split=bench",
                 "data.use_right_image=False",
@@ -111,6 +115,7 @@ def main(argv=None) -> int:
             random_weights(spec, overrides, weights)
             for dtype_name in args.dtypes.split(","):
                 print(f"\n=== {name} ({spec}), {dtype_name} ===", flush=True)
+                t0, wall0 = os.times(), time.perf_counter()
                 summary = evaluate_detector_workdir(
                     tmp / f"wd_{name}",
                     config_spec=str(REPO / spec),
@@ -120,24 +125,29 @@ def main(argv=None) -> int:
                     dtype=getattr(jnp, dtype_name),
                     out_dir=tmp / f"wd_{name}" / f"eval_{dtype_name}",
                 )
+                t1, wall1 = os.times(), time.perf_counter()
+                cpu = (t1.user - t0.user) + (t1.system - t0.system)
                 rows.append(
                     {
                         "config": name,
                         "dtype": dtype_name,
                         "compile_s": summary["compile_s"],
+                        "cpu_per_wall": cpu / (wall1 - wall0),  # <= threads; lower = contention
                         **summary["speed"],
                     }
                 )
     load = os.getloadavg()
     print(f"\nload average at the end {load[0]:.2f}")
     header = (
-        "config   dtype     compile s  model ms  post ms  io ms  frames/s   (medians per frame)"
+        "config   dtype     compile s  model ms  post ms  io ms  frames/s  cpu/wall"
+        "  (medians per frame)"
     )
     print(header)
     for r in rows:
         print(
             f"{r['config']:8s} {r['dtype']:9s} {r['compile_s']:9.1f} {r['model_ms_median']:9.1f} "
-            f"{r['postprocess_ms_median']:8.1f} {r['io_ms_median']:6.1f} {r['frames_per_s']:9.2f}"
+            f"{r['postprocess_ms_median']:8.1f} {r['io_ms_median']:6.1f} {r['frames_per_s']:9.2f} "
+            f"{r['cpu_per_wall']:9.2f}"
         )
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2) + "\n")

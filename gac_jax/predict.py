@@ -90,17 +90,24 @@ class ImageSource:
     Args:
       images, calibs: paths, one calibration per image.
       camera: 2 (``P2``) or 3 (``P3``) of the calibration file.
-      min_height: images must be taller than this (the model crops that many top rows).
+      input_geometry: ``(crop_top, height, width)`` of the model's test transform: images
+        must be taller than ``crop_top``; those wider than ``width`` after the resize to
+        ``height`` are cut on the right by the transform and listed in :attr:`cut_off`.
     """
 
     def __init__(
-        self, images: Sequence[Path], calibs: Sequence[Path], camera: int = 2, min_height: int = 0
+        self,
+        images: Sequence[Path],
+        calibs: Sequence[Path],
+        camera: int = 2,
+        input_geometry: tuple[int, int, int] | None = None,
     ):
         self.images = [Path(p) for p in images]
         self.calibs = [Path(p) for p in calibs]
         self.camera = camera
-        self.min_height = min_height
+        self.input_geometry = input_geometry
         self.frame_ids = [p.stem for p in self.images]
+        self.cut_off: set[str] = set()
 
     def __len__(self) -> int:
         return len(self.images)
@@ -115,11 +122,15 @@ class ImageSource:
         if P is None:
             raise KittiFormatError(self.calibs[i], f"calibration has no P{self.camera}")
         image = read_image(self.images[i])
-        if image.shape[0] <= self.min_height:
-            raise KittiFormatError(
-                self.images[i],
-                f"image is {image.shape[0]} rows tall; the model crops the top {self.min_height}",
-            )
+        if self.input_geometry is not None:
+            crop_top, height, width = self.input_geometry
+            h, w = image.shape[:2]
+            if h <= crop_top:
+                raise KittiFormatError(
+                    self.images[i], f"image is {h} rows tall; the model crops the top {crop_top}"
+                )
+            if round(w * height / (h - crop_top)) > width:
+                self.cut_off.add(self.frame_ids[i])
         return new_sample(self.frame_ids[i], self.camera, image, P)
 
 
@@ -163,7 +174,8 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
         overrides.append(f"eval.score_threshold={args.score_threshold}")
     config = load_run_config(workdir, args.config, overrides)
     detector = load_detector(workdir, config, step=args.step, checkpoint=args.checkpoint)
-    source = ImageSource(images, calibs, args.camera, min_height=config.data.crop_top)
+    d = config.data
+    source = ImageSource(images, calibs, args.camera, (d.crop_top, d.height, d.width))
     evaluator = DetectionEvaluator(
         detector.model,
         detector.constants,
@@ -189,6 +201,13 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
         f"post-processing {timings['postprocess_s']:.2f} s, I/O {timings['io_s']:.2f} s; "
         f"compile {compile_s:.1f} s)"
     )
+    if source.cut_off:
+        cut = sorted(source.cut_off)
+        print(
+            f"note: {len(cut)} images are wider than the model input ({d.width} px at height "
+            f"{d.height} after cropping {d.crop_top} rows): their right part was not seen "
+            f"({', '.join(cut[:5])}{' ...' if len(cut) > 5 else ''})"
+        )
     if not args.no_images:
         save_pictures(source, detections, out / "pictures", None)
         print(f"pictures in {out / 'pictures'}")

@@ -78,11 +78,13 @@ def test_unlabeled_frames_and_other_image_sizes(
     )
     folder = tmp_path / "custom"
     write_png(folder / "frame.png", big)
+    write_png(folder / "wide.png", np.concatenate([big, big], axis=1))  # cut by the transform
     write_calib(tmp_path / "one_calib.txt", dataclasses.replace(calib, P2=A @ calib.P2))
     out2 = tmp_path / "out2"
     argv = ["--workdir", tiny_detect3d_workdir, folder, "--calib", tmp_path / "one_calib.txt"]
-    code, _, err = run([*argv, "--out", out2, "--score-threshold", 0.0], capsys)
+    code, stdout, err = run([*argv, "--out", out2, "--score-threshold", 0.0], capsys)
     assert code == 0, err
+    assert "note: 1 images are wider than the model input" in stdout and "(wide)" in stdout
     det = read_label(out2 / "data" / "frame.txt", with_score=True)
     assert len(det) > 0
     assert np.all(det.bbox[:, [2, 3]] <= [big.shape[1] - 1, big.shape[0] - 1])
