@@ -10,7 +10,9 @@ Priors are computed from the same frames (min count 1).
 
 Configs: ``paper`` = configs/detect3d_kitti.py (ResNet-101, 288x1280, batch 1);
 ``default`` = configs/detect3d_default.py (ResNet-18, 96x432, its eval batch of 8).
-Each runs in float32 and with ``Detector(dtype=bfloat16)`` (float32 parameters).
+Each runs in float32 and with ``Detector(dtype=bfloat16)`` (float32 parameters); as the
+machine may be shared, the dtypes are also compared on the model call alone with the calls
+alternating (same load for both), in wall and process-CPU time.
 Reported: compile time (once, separately) and per-frame medians (means) of model,
 post-processing and I/O time, end-to-end frames/s, and the process's CPU time per wall
 second (at most the thread count; lower means other processes took cores).
@@ -68,6 +70,47 @@ def random_weights(config_spec: str, overrides: list[str], out: Path) -> None:
     save_converted(out, variables, {"kind": "gac_detector", "model": {}})
 
 
+def interleaved_model_timing(workdir, config_spec, overrides, weights, dtypes, rounds) -> dict:
+    """Model call alone, the dtypes alternating call by call so that they share the machine's
+    load: median wall and process-CPU milliseconds per frame for each dtype."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from gac_jax.data.loader import Loader
+    from gac_jax.data.sources import open_object_source
+    from gac_jax.evaluation.detection_model_eval import load_detector
+    from gac_jax.evaluation.detector_evaluator import InputArrays
+    from gac_jax.evaluation.model_mode import load_run_config
+    from gac_jax.inference import make_predict_fn
+    from gac_jax.trainers.detect3d import eval_transform, filter_options
+
+    config = load_run_config(workdir, config_spec, overrides)
+    b = config.data.eval_batch_size
+    source = open_object_source(config.data.root, config.data.val_split)
+    batch = Loader(source, eval_transform(config), InputArrays(), batch_size=b, shuffle=False)
+    batch = batch.load_batch(0)
+    runs = {}
+    for name in dtypes:
+        det = load_detector(workdir, config, checkpoint=weights, dtype=getattr(jnp, name))
+        predict = make_predict_fn(
+            det.model, det.constants, top_k=config.eval.top_k, filter_options=filter_options(config)
+        )
+        fn = predict.lower(det.variables, batch["image"], batch["P2"]).compile()
+        runs[name] = (fn, det.variables)
+    times = {name: ([], []) for name in dtypes}
+    for _ in range(rounds):
+        for name, (fn, variables) in runs.items():
+            w0, c0 = time.perf_counter(), time.process_time()
+            out = fn(variables, batch["image"], batch["P2"])
+            np.asarray(out["scores"])
+            times[name][0].append((time.perf_counter() - w0) / b)
+            times[name][1].append((time.process_time() - c0) / b)
+    return {
+        name: {"wall_ms": 1e3 * float(np.median(w)), "cpu_ms": 1e3 * float(np.median(c))}
+        for name, (w, c) in times.items()
+    }
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--configs", default="paper,default")
@@ -78,6 +121,7 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--data", type=Path, default=KITTI, help="KITTI object root (labeled split)"
     )
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved model-only calls")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
 
@@ -94,7 +138,7 @@ def main(argv=None) -> int:
         f"threads, load average {load[0]:.2f}; frames from {args.data}",
         flush=True,
     )
-    rows = []
+    rows, models = [], {}
     with tempfile.TemporaryDirectory(prefix="bench_evaluate_") as tmp:
         tmp = Path(tmp)
         for name in args.configs.split(","):
@@ -136,6 +180,15 @@ def main(argv=None) -> int:
                         **summary["speed"],
                     }
                 )
+            if len(args.dtypes.split(",")) > 1 and args.rounds:
+                models[name] = interleaved_model_timing(
+                    tmp / f"wd_{name}",
+                    str(REPO / spec),
+                    overrides,
+                    weights,
+                    args.dtypes.split(","),
+                    args.rounds,
+                )
     load = os.getloadavg()
     print(f"\nload average at the end {load[0]:.2f}")
     header = (
@@ -149,8 +202,15 @@ def main(argv=None) -> int:
             f"{r['postprocess_ms_median']:8.1f} {r['io_ms_median']:6.1f} {r['frames_per_s']:9.2f} "
             f"{r['cpu_per_wall']:9.2f}"
         )
+    if models:
+        print("\nmodel call alone, dtypes interleaved (median ms per frame, wall / process CPU):")
+        for name, per_dtype in models.items():
+            cells = ", ".join(
+                f"{d} {t['wall_ms']:.1f} / {t['cpu_ms']:.1f}" for d, t in per_dtype.items()
+            )
+            print(f"  {name}: {cells}")
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+        args.json.write_text(json.dumps({"runs": rows, "model_only": models}, indent=2) + "\n")
     return 0
 
 
