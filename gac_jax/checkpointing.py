@@ -17,6 +17,8 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
+VARIABLE_COLLECTIONS = ("params", "batch_stats")
+
 
 class Checkpoints:
     def __init__(self, workdir: str | os.PathLike, max_to_keep: int = 3):
@@ -40,13 +42,7 @@ class Checkpoints:
 
     def restore(self, abstract_state: Any, step: int | None = None) -> tuple[Any, dict]:
         """Restores ``step`` (default: latest) into the shardings of ``abstract_state``."""
-        step = self.latest_step() if step is None else step
-        if step is None:
-            raise FileNotFoundError(f"no checkpoint found in {self.directory}")
-        if step not in self.all_steps():
-            raise FileNotFoundError(
-                f"checkpoint step {step} not found in {self.directory} (have {self.all_steps()})"
-            )
+        step = self._existing_step(step)
         target = jax.tree.map(_abstract, abstract_state)
         restored = self._manager.restore(
             step,
@@ -81,6 +77,43 @@ class Checkpoints:
             ),
         )
         return jax.tree.map(np.asarray, dict(restored.state)), dict(restored.meta)
+
+    def restore_variables(self, step: int | None = None) -> dict[str, Any]:
+        """The model variables ``{'params', 'batch_stats'}`` of ``step`` (default: latest).
+
+        Reads only those two collections of the stored ``state`` (a training state or
+        converted weights), as host numpy arrays with their stored dtypes; no template,
+        optimizer or device is needed (inference, export).
+        """
+        step = self._existing_step(step)
+        options = ocp.CheckpointManagerOptions(create=False)
+        handlers = {"state": ocp.PyTreeCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
+        with ocp.CheckpointManager(self.directory, options=options, item_handlers=handlers) as m:
+            tree = m.item_metadata(step)["state"].tree
+            if "params" not in tree:
+                raise KeyError(
+                    f"checkpoint {step} in {self.directory} has no 'params' in its state"
+                )
+            subtree = {c: tree[c] for c in VARIABLE_COLLECTIONS if c in tree}
+            item = jax.tree.map(lambda x: np.empty(x.shape, x.dtype), subtree)
+            restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), item)
+            args = ocp.args.PyTreeRestore(
+                item=item, restore_args=restore_args, partial_restore=True
+            )
+            composite = ocp.args.Composite(state=args, meta=ocp.args.JsonRestore())
+            restored = m.restore(step, args=composite).state
+        variables = {c: restored.get(c, {}) for c in VARIABLE_COLLECTIONS}
+        return jax.tree.map(np.asarray, variables)
+
+    def _existing_step(self, step: int | None) -> int:
+        step = self.latest_step() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"no checkpoint found in {self.directory}")
+        if step not in self.all_steps():
+            raise FileNotFoundError(
+                f"checkpoint step {step} not found in {self.directory} (have {self.all_steps()})"
+            )
+        return step
 
     def restore_meta(self, step: int | None = None) -> dict:
         step = self.latest_step() if step is None else step

@@ -48,3 +48,32 @@ def kitti_samples() -> Path:
 def kitti_object_root(kitti_samples: Path) -> Path:
     """KITTI object root of the 13 labeled real frames (split ``labeled``)."""
     return kitti_samples / "object"
+
+
+TINY_DETECT3D_OVERRIDES = (
+    "data.source=kitti",
+    "data.train_split=labeled",
+    "data.val_split=labeled",
+    "data.use_right_image=False",
+    "eval.score_threshold=0.0",
+    "eval.num_pictures=2",
+)
+
+
+@pytest.fixture(scope="session")
+def tiny_detect3d_workdir(kitti_object_root: Path, tmp_path_factory) -> Path:
+    """A detection workdir trained 2 steps (``configs/detect3d_default.py:tiny`` on the 13 real
+    frames, score threshold 0), evaluated at the end: ``results/step_2/{data,pictures}``.
+
+    Shared by the inference tests (evaluate.py model mode, gac_jax.predict); treat it as
+    read-only (copy it to change it).
+    """
+    from gac_jax.config import apply_overrides, load_config
+    from gac_jax.trainers import detect3d
+
+    config = load_config(str(REPO_ROOT / "configs" / "detect3d_default.py:tiny"))
+    overrides = [*TINY_DETECT3D_OVERRIDES, f"data.root={kitti_object_root}", "train.num_steps=2"]
+    apply_overrides(config, overrides)
+    workdir = tmp_path_factory.mktemp("tiny_detect3d")
+    detect3d.train_and_evaluate(config, workdir)
+    return workdir

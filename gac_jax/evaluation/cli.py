@@ -2,6 +2,8 @@
 
     python evaluate.py --task detect3d --label-dir L --result-dir R [--split-file F] [--json OUT]
     python evaluate.py --task depth --groundtruth-dir G --prediction-dir P [--json OUT]
+    python evaluate.py --task detect3d --workdir W [--step N] ...   # model mode, see
+        gac_jax/evaluation/detection_model_eval.py
     python evaluate.py --task depth --workdir W [--data DIR] [--split S] [--step N] [--out DIR]
     python evaluate.py --task depth --baseline ground-plane (--data DIR | --workdir W)
 
@@ -25,6 +27,7 @@ from gac_jax.data.files import KittiFormatError, atomic_write, read_depth_png
 from gac_jax.data.kitti import KittiObjects, read_label, read_split
 from gac_jax.evaluation.depth_metrics import DepthMetricAccumulator, format_depth_table
 from gac_jax.evaluation.kitti_object import CLASSES, evaluate_detections, format_table
+from gac_jax.evaluation.model_mode import add_model_mode_arguments, reject_model_mode_arguments
 
 EXIT_INVALID_INPUT = 2
 
@@ -146,19 +149,20 @@ def build_parser() -> argparse.ArgumentParser:
     dep = parser.add_argument_group("--task depth")
     dep.add_argument("--groundtruth-dir", help="folder of 16-bit ground-truth depth PNGs")
     dep.add_argument("--prediction-dir", help="folder of 16-bit predicted depth PNGs (same paths)")
-    # Depth model mode (gac_jax/evaluation/depth_workdir.py).
-    dep.add_argument("--workdir", help="depth training workdir: run its model, write, score")
+    # Depth model mode (gac_jax/evaluation/depth_workdir.py); --workdir, --data, --split and
+    # --step are the shared model-mode options below.
     dep.add_argument("--baseline", choices=("ground-plane",), help="score a no-learning baseline")
-    dep.add_argument(
-        "--data", help="KITTI-depth root or depth_selection folder (default: workdir's)"
-    )
-    dep.add_argument("--split", help="split of a KITTI-depth root (default: val)")
-    dep.add_argument("--step", type=int, help="checkpoint step (default: the latest)")
     dep.add_argument("--out", help="folder for the predicted 16-bit PNGs")
+    add_model_mode_arguments(parser)
     return parser
 
 
 def _run_detect3d(args, parser) -> dict:
+    if args.workdir:
+        from gac_jax.evaluation.detection_model_eval import run_model_mode
+
+        return run_model_mode(args, parser)
+    reject_model_mode_arguments(args, parser)
     if not args.label_dir or not args.result_dir:
         parser.error("--task detect3d needs --label-dir and --result-dir")
     classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
@@ -173,11 +177,23 @@ def _run_detect3d(args, parser) -> dict:
     return result
 
 
+DEPTH_MODEL_MODE_UNSUPPORTED = ("config", "checkpoint", "batch_size", "threads", "overrides")
+
+
 def _run_depth(args, parser) -> dict:
     if args.workdir or args.baseline:
+        unsupported = [n for n in DEPTH_MODEL_MODE_UNSUPPORTED if getattr(args, n, None)]
+        if unsupported or args.save_images:
+            names = [n.replace("_", "-") for n in unsupported] + (
+                ["save-images"] * bool(args.save_images)
+            )
+            parser.error(f"--task depth model mode does not take --{', --'.join(names)}")
         from gac_jax.evaluation import depth_workdir
 
         return depth_workdir.run(args)
+    reject_model_mode_arguments(args, parser)
+    if args.out:
+        parser.error("--out only applies with --workdir or --baseline")
     if not args.groundtruth_dir or not args.prediction_dir:
         parser.error("--task depth needs --groundtruth-dir and --prediction-dir")
     metrics, count = evaluate_depth_folders(args.groundtruth_dir, args.prediction_dir)

@@ -33,6 +33,7 @@ from gac_jax.data import transforms
 from gac_jax.data.loader import DetectionArrays, Loader
 from gac_jax.data.sources import open_object_source
 from gac_jax.detection_loss import DetectionLossConfig, detection_loss
+from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
 from gac_jax.evaluation.kitti_object import format_table
 from gac_jax.inference import PostprocessConfig
@@ -365,6 +366,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
             writer.write(step, kind="eval", **out)
             with open(workdir / "results" / f"step_{step}" / "metrics.json", "w") as f:
                 json.dump(out, f, indent=2)
+            save_evaluation_pictures(
+                evaluator.source, result_dir, config.eval.num_pictures, classes
+            )
         return out
 
     # Loop. In a multi-process run the watchdog stops a process whose peers hang.

@@ -1,0 +1,385 @@
+"""``evaluate.py --task detect3d --workdir W``: checkpoint -> KITTI result files -> AP table.
+
+    python evaluate.py --task detect3d --workdir W [--config C] [--data DIR] [--split val]
+        [--step N | --checkpoint DIR] [--batch-size B] [--save-images K] [--threads T]
+        [--json OUT] [key.sub=value ...]
+
+Restores the latest (or ``--step``) training checkpoint of ``W`` (or converted
+weights, ``--checkpoint DIR --config C``), rebuilds model, anchors and priors
+from ``W/config.json`` and ``W/anchor_priors.npz``, compiles the predict
+function once for the evaluation batch shape and writes one KITTI result file
+per frame to ``W/eval/<split>_step<N>/data/`` as it goes; an interrupted run
+resumes without redoing finished frames (``run.json`` there records the settings,
+and a folder made with other settings is refused rather than mixed). Then prints
+the AP table (``--json``: the offline mode's JSON), frames/s split into model,
+post-processing and I/O time, and writes everything to ``metrics.json`` there.
+
+:func:`load_detector` (config + model + anchors/priors + weights of a workdir) is
+shared with ``python -m gac_jax.predict``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from gac_jax import pretrained
+from gac_jax.anchor_priors import (
+    DetectionConstants,
+    PriorsMismatchError,
+    load_priors,
+    make_detection_constants,
+)
+from gac_jax.anchors import generate_anchors
+from gac_jax.checkpointing import Checkpoints
+from gac_jax.data.files import KittiFormatError, atomic_write
+from gac_jax.data.sources import open_object_source
+from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
+from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
+from gac_jax.evaluation.kitti_object import format_table
+from gac_jax.evaluation.model_mode import limit_cpu_threads, load_run_config, xla_thread_count
+from gac_jax.inference import PostprocessConfig
+from gac_jax.models.detector import Detector
+from gac_jax.trainers.common import prepare_dataset
+from gac_jax.trainers.detect3d import (
+    anchor_layout,
+    build_model,
+    compute_priors,
+    eval_transform,
+    filter_options,
+)
+
+PRIORS_FILE = "anchor_priors.npz"
+
+
+@dataclasses.dataclass
+class LoadedDetector:
+    """Everything needed to run a detector (see :func:`load_detector`).
+
+    Attributes:
+      config: the run config; model: the Detector (compute ``dtype`` as asked);
+      constants: anchors + priors; variables: ``{'params', 'batch_stats'}`` numpy;
+      weights: where the weights came from (human-readable); tag: short name of
+        the weights for folder names (``step<N>`` or the converted folder's name);
+      step: the workdir checkpoint's step (None for converted weights).
+    """
+
+    config: ml_collections.ConfigDict
+    model: Detector
+    constants: DetectionConstants
+    variables: dict[str, Any]
+    weights: str
+    tag: str
+    step: int | None = None
+
+
+def postprocess_config(config: ml_collections.ConfigDict) -> PostprocessConfig:
+    e = config.eval
+    return PostprocessConfig(
+        score_threshold=e.score_threshold,
+        nms_iou=e.nms_iou,
+        class_agnostic_nms=e.class_agnostic_nms,
+        hill_climbing=e.hill_climbing,
+    )
+
+
+def _variables_template(model: Detector, config) -> dict:
+    d = config.data
+    images = jax.ShapeDtypeStruct((1, d.height, d.width, 3), jnp.float32)
+    P2 = jax.ShapeDtypeStruct((1, 3, 4), jnp.float32)
+    key = jax.random.key(0)
+    init = functools.partial(model.init, train=False)
+    shapes = jax.eval_shape(init, {"params": key, "dropout": key}, images, P2)
+    return {"params": shapes["params"], "batch_stats": shapes.get("batch_stats", {})}
+
+
+def _load_priors(config, workdir: Path, layout, converted: bool):
+    path = workdir / PRIORS_FILE
+    classes = tuple(config.data.classes)
+    if path.exists():
+        try:
+            return load_priors(path, layout, classes, config.anchors.angle_mode)
+        except PriorsMismatchError as e:
+            raise KittiFormatError(path, str(e).removeprefix(f"{path}: ")) from None
+        except ValueError as e:
+            raise KittiFormatError(path, str(e).removeprefix(f"{path}: ")) from None
+    if not converted:
+        raise KittiFormatError(
+            path,
+            "anchor priors not found: the trainer computes them from the training split on its "
+            f"first run (python train.py --task detect3d --workdir {workdir}); with converted "
+            "weights (--checkpoint) they are computed here from the config's training split",
+        )
+    root = prepare_dataset(config.data)
+    print(
+        f"computing anchor priors from split {config.data.train_split!r} of {root} "
+        f"(cached in {path})",
+        flush=True,
+    )
+    workdir.mkdir(parents=True, exist_ok=True)
+    return compute_priors(config, root, layout, workdir)
+
+
+def _restore_workdir_weights(workdir: Path, step: int | None, template) -> tuple[dict, int]:
+    directory = workdir / "checkpoints"
+    how = (
+        f"train first (python train.py --task detect3d --workdir {workdir}) or pass "
+        "--checkpoint DIR with converted weights"
+    )
+    if not directory.is_dir():
+        raise KittiFormatError(directory, f"no checkpoints folder: {how}")
+    with Checkpoints(workdir) as ckpts:
+        if ckpts.latest_step() is None:
+            raise KittiFormatError(directory, f"no checkpoint in this folder: {how}")
+        step = ckpts.latest_step() if step is None else step
+        if step not in ckpts.all_steps():
+            raise KittiFormatError(
+                directory, f"no checkpoint step {step} (have {ckpts.all_steps()})"
+            )
+        variables = ckpts.restore_variables(step)
+    problems = pretrained.compare_shapes(
+        pretrained.flat_shapes(template), pretrained.flat_shapes(variables)
+    )
+    if problems:
+        shown = "; ".join(problems[:3]) + (
+            f"; ... {len(problems) - 3} more" if len(problems) > 3 else ""
+        )
+        raise KittiFormatError(
+            directory / str(step),
+            f"checkpoint does not fit the model of the config ({len(problems)} problems: {shown})",
+        )
+    cast = jax.tree.map(lambda v, t: np.asarray(v, t.dtype), variables, template)
+    return cast, step
+
+
+def load_detector(
+    workdir: str | os.PathLike,
+    config: ml_collections.ConfigDict,
+    *,
+    step: int | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    dtype: Any = jnp.float32,
+) -> LoadedDetector:
+    """Model, anchors + priors and weights of a training workdir (or converted weights).
+
+    Args:
+      workdir: the training workdir (``anchor_priors.npz``, ``checkpoints/``).
+      config: its config (:func:`gac_jax.evaluation.model_mode.load_run_config`).
+      step: checkpoint step (default: the latest).
+      checkpoint: converted weights instead of the workdir's checkpoints; missing
+        priors are then computed from the config's training split and cached.
+      dtype: compute dtype of the model (parameters stay float32).
+
+    Raises:
+      KittiFormatError: missing or unfitting priors / checkpoints, naming the file.
+    """
+    workdir = Path(workdir)
+    layout = anchor_layout(config)
+    priors = _load_priors(config, workdir, layout, converted=checkpoint is not None)
+    constants = make_detection_constants(generate_anchors(layout), priors)
+    model = build_model(config, layout.anchors_per_cell).clone(dtype=dtype)
+    template = _variables_template(model, config)
+    if checkpoint is not None:
+        try:
+            variables = pretrained.load_converted_variables(checkpoint, template)
+        except pretrained.WeightsError as e:
+            raise KittiFormatError(checkpoint, e.full_text(max_lines=10)) from None
+        path = Path(checkpoint).resolve()
+        name = path.parent.parent.name if path.parent.name == "checkpoints" else path.name
+        return LoadedDetector(
+            config, model, constants, variables, f"converted weights {path}", name
+        )
+    variables, step = _restore_workdir_weights(workdir, step, template)
+    return LoadedDetector(
+        config, model, constants, variables, f"step {step} of {workdir}", f"step{step}", step
+    )
+
+
+def run_settings(detector: LoadedDetector, split: str, root: Path, dtype) -> dict:
+    """What the result files of a run depend on (compared when resuming)."""
+    c = detector.config
+    return {
+        # the workdir's own checkpoints by step (the workdir may move), converted ones by path
+        "weights": detector.tag if detector.step is not None else detector.weights,
+        "split": split,
+        "data_root": str(Path(root).resolve()),
+        "dtype": jnp.dtype(dtype).name,
+        "input": {k: c.data[k] for k in ("crop_top", "height", "width")},
+        "classes": list(c.data.classes),
+        "anchors": c.anchors.to_dict(),
+        "model": c.model.to_dict(),
+        "eval": {k: v for k, v in c.eval.to_dict().items() if k != "num_pictures"},
+    }
+
+
+def _check_resumable(path: Path, settings: dict) -> None:
+    """Refuses to add to result files made with other settings; records them otherwise."""
+    canonical = json.loads(json.dumps(settings, default=str))
+    if path.exists():
+        stored = json.loads(path.read_text())
+        if stored != canonical:
+            keys = sorted(
+                k for k in set(stored) | set(canonical) if stored.get(k) != canonical.get(k)
+            )
+            raise KittiFormatError(
+                path,
+                f"the results here were made with other settings ({', '.join(keys)} differ); "
+                f"delete {path.parent} to evaluate again",
+            )
+        return
+    with atomic_write(path) as f:
+        json.dump(canonical, f, indent=2)
+        f.write("\n")
+
+
+def timing_summary(timings: dict, batch_timings: list[dict]) -> dict[str, float]:
+    """Per-frame means and medians (ms) of model / post-processing / I/O, and frames/s."""
+    frames = timings.get("num_frames", 0.0)
+    out: dict[str, float] = {"frames": frames}
+    if not frames:
+        return out
+    total = timings["model_s"] + timings["postprocess_s"] + timings["io_s"]
+    out["frames_per_s"] = frames / total if total > 0 else float("inf")
+    for key in ("model", "postprocess", "io"):
+        per_frame = [b[f"{key}_s"] / b["frames"] for b in batch_timings if b["frames"]]
+        out[f"{key}_ms_mean"] = 1e3 * timings[f"{key}_s"] / frames
+        out[f"{key}_ms_median"] = 1e3 * float(np.median(per_frame))
+    return out
+
+
+def format_timing(summary: dict[str, float], compile_s: float | None, threads: int) -> str:
+    if not summary.get("frames"):
+        return "no frame predicted in this run (all results were already there)\n"
+    s = summary
+    lines = [
+        f"speed ({threads} CPU threads): {s['frames_per_s']:.2f} frames/s end to end over "
+        f"{int(s['frames'])} frames",
+        "  per frame, median (mean): "
+        f"model {s['model_ms_median']:.1f} ({s['model_ms_mean']:.1f}) ms, "
+        f"post-processing {s['postprocess_ms_median']:.1f} ({s['postprocess_ms_mean']:.1f}) ms, "
+        f"I/O {s['io_ms_median']:.1f} ({s['io_ms_mean']:.1f}) ms",
+    ]
+    if compile_s is not None:
+        lines.append(f"  compile (once, not included): {compile_s:.1f} s")
+    return "\n".join(lines) + "\n"
+
+
+def evaluate_detector_workdir(
+    workdir: str | os.PathLike,
+    *,
+    config_spec: str | None = None,
+    overrides: list[str] | None = None,
+    data_root: str | os.PathLike | None = None,
+    split: str | None = None,
+    step: int | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    batch_size: int | None = None,
+    save_images: int = 0,
+    threads: int | None = None,
+    dtype: Any = jnp.float32,
+    out_dir: str | os.PathLike | None = None,
+) -> dict:
+    """The model mode as a function (see the module docstring); prints as it goes.
+
+    Returns:
+      ``{'metrics': <offline-mode result dict>, 'timings', 'speed', 'compile_s',
+      'num_frames', 'predicted', 'resumed', 'result_dir', 'weights', 'threads'}``.
+    """
+    threads = limit_cpu_threads(threads)
+    workdir = Path(workdir)
+    if not workdir.is_dir() and not (checkpoint is not None and config_spec):
+        raise KittiFormatError(workdir, "workdir not found")
+    config = load_run_config(workdir, config_spec, overrides, data_root)
+    detector = load_detector(workdir, config, step=step, checkpoint=checkpoint, dtype=dtype)
+    split = split or config.data.val_split
+    root = prepare_dataset(config.data)
+    source = open_object_source(root, split, use_right_image=False)
+    batch_size = batch_size or config.data.eval_batch_size
+    evaluator = DetectionEvaluator(
+        detector.model,
+        detector.constants,
+        source,
+        eval_transform(config),
+        tuple(config.data.classes),
+        postprocess_config(config),
+        batch_size=batch_size,
+        top_k=config.eval.top_k,
+        filter_options=filter_options(config),
+        use_ground_filter=config.anchors.filter,
+    )
+    out = Path(out_dir) if out_dir else workdir / "eval" / f"{split}_{detector.tag}"
+    result_dir = out / "data"
+    _check_resumable(out / "run.json", run_settings(detector, split, root, dtype))
+    ids = evaluator.frame_ids()
+    resumed = sum((result_dir / f"{fid}.txt").exists() for fid in ids)
+    print(
+        f"evaluating {detector.weights} on split {split!r} of {root}: {len(ids)} frames "
+        f"({resumed} already done) -> {result_dir}",
+        flush=True,
+    )
+    compile_s = None
+    if resumed < len(ids):
+        size = (config.data.height, config.data.width)
+        compile_s = evaluator.compile(detector.variables, size)
+    result = evaluator.evaluate(detector.variables, result_dir, resume=True)
+    speed = timing_summary(result["timings"], evaluator.batch_timings)
+    threads = xla_thread_count() or threads  # the compute threads XLA actually started
+    print(format_table(result["metrics"]), end="")
+    print(format_timing(speed, compile_s, threads), end="", flush=True)
+    pictures = save_evaluation_pictures(
+        source, result_dir, save_images, tuple(config.data.classes), out / "pictures"
+    )
+    if pictures:
+        print(f"{len(pictures) - 1} pictures and grid.png in {out / 'pictures'}")
+    summary = {
+        "metrics": result["metrics"],
+        "timings": result["timings"],
+        "speed": speed,
+        "compile_s": compile_s,
+        "num_frames": result["num_frames"],
+        "predicted": int(result["timings"]["num_frames"]),
+        "resumed": resumed,
+        "result_dir": str(result_dir),
+        "weights": detector.weights,
+        "threads": threads,
+    }
+    with atomic_write(out / "metrics.json") as f:
+        json.dump(summary, f, indent=2)
+        f.write("\n")
+    return summary
+
+
+def run_model_mode(args, parser) -> dict:
+    """``evaluate.py --task detect3d --workdir ...``: returns the offline mode's result dict."""
+    if args.label_dir or args.result_dir:
+        parser.error("--workdir (model mode) and --label-dir/--result-dir are exclusive")
+    if args.checkpoint and args.step is not None:
+        parser.error("--step selects a checkpoint of the workdir; it cannot go with --checkpoint")
+    if args.checkpoint and not args.config and not (Path(args.workdir) / "config.json").exists():
+        parser.error("--checkpoint (converted weights) needs --config")
+    try:
+        threads = limit_cpu_threads(args.threads)
+    except ValueError as e:
+        parser.error(str(e))
+    summary = evaluate_detector_workdir(
+        args.workdir,
+        config_spec=args.config,
+        overrides=args.overrides,
+        data_root=args.data,
+        split=args.split,
+        step=args.step,
+        checkpoint=args.checkpoint,
+        batch_size=args.batch_size,
+        save_images=args.save_images,
+        threads=threads,
+    )
+    return summary["metrics"]

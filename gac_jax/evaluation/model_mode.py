@@ -1,0 +1,163 @@
+"""What every "run a trained model" command shares: its arguments, CPU threads, the run config.
+
+``evaluate.py --workdir W`` (model mode) and ``python -m gac_jax.predict`` read a
+training workdir: ``W/config.json`` (the resolved config the trainer wrote) and
+``W/checkpoints/<step>``; ``--config`` replaces the stored config (needed for
+converted weights, which come without one).
+
+CPU threads: XLA's CPU client sizes its compute thread pool (threads named
+``tf_XLAEigen``) by the CPU affinity of the process when the backend starts,
+and has no flag for it (``--xla_cpu_multi_thread_eigen=false`` only forces one
+thread). :func:`limit_cpu_threads` therefore narrows the affinity before JAX
+starts, like ``taskset -c 0-1 python evaluate.py ...``. The default is every core
+the process may use (2 on the evaluation machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import ml_collections
+
+from gac_jax.config import ConfigError, apply_overrides, load_config
+from gac_jax.data.files import KittiFormatError
+
+XLA_THREAD_NAME = "tf_XLAEigen"
+
+
+def add_model_mode_arguments(parser: argparse.ArgumentParser) -> None:
+    """The model-mode options of ``evaluate.py`` (task-independent)."""
+    g = parser.add_argument_group(
+        "model mode (--workdir): run a trained model on a split, write result files, score them"
+    )
+    g.add_argument("--workdir", help="training workdir (config.json, checkpoints/, priors)")
+    g.add_argument("--config", help="config file[:arg] instead of WORKDIR/config.json")
+    g.add_argument("--data", metavar="DIR", help="dataset root (default: the config's data)")
+    g.add_argument("--split", help="split to evaluate (default: the config's val split)")
+    g.add_argument("--step", type=int, help="checkpoint step (default: the latest)")
+    g.add_argument(
+        "--checkpoint", metavar="DIR", help="converted weights (python -m gac_jax.convert)"
+    )
+    g.add_argument("--batch-size", type=int, help="images per model call (default: config)")
+    g.add_argument(
+        "--save-images", type=int, default=0, metavar="K", help="draw the first K frames"
+    )
+    g.add_argument(
+        "--threads", type=int, help="CPU threads of the XLA backend (default: every usable core)"
+    )
+    g.add_argument("overrides", nargs="*", help="config overrides key.sub=value (model mode)")
+
+
+MODEL_MODE_OPTIONS = (
+    "config", "data", "split", "step", "checkpoint", "batch_size", "threads", "overrides"
+)  # fmt: skip
+
+
+def reject_model_mode_arguments(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
+    """Offline mode: model-mode options without ``--workdir`` are an error, not ignored."""
+    given = [name for name in MODEL_MODE_OPTIONS if getattr(args, name, None)]
+    if getattr(args, "save_images", 0):
+        given.append("save_images")
+    if given:
+        flags = ", ".join(
+            "key=value overrides" if g == "overrides" else "--" + g.replace("_", "-") for g in given
+        )
+        parser.error(f"{flags} only apply with --workdir (model mode)")
+
+
+def backend_started() -> bool:
+    from jax._src import xla_bridge
+
+    return xla_bridge.backends_are_initialized()
+
+
+def available_cores() -> list[int]:
+    """The CPU cores this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return sorted(os.sched_getaffinity(0))
+    return list(range(os.cpu_count() or 1))
+
+
+def limit_cpu_threads(threads: int | None) -> int:
+    """Restricts XLA's CPU compute threads to ``threads`` cores; returns the count in effect.
+
+    Must run before JAX starts its backend (first computation or ``jax.devices()``);
+    afterwards only the current count is accepted. ``None`` keeps every usable core.
+
+    Raises:
+      ValueError: ``threads`` < 1, more than the usable cores, or the backend already
+        runs with another count (start a fresh process, or use ``taskset``).
+    """
+    cores = available_cores()
+    if threads is None:
+        return len(cores)
+    if threads < 1 or threads > len(cores):
+        raise ValueError(f"--threads must be in [1, {len(cores)}] (usable cores), got {threads}")
+    if threads == len(cores):
+        return threads
+    if backend_started():
+        raise ValueError(
+            f"--threads {threads}: JAX already runs with {len(cores)} threads in this process; "
+            "set it before the first JAX computation (or run under taskset)"
+        )
+    if not hasattr(os, "sched_setaffinity"):
+        raise ValueError("--threads needs os.sched_setaffinity (Linux); use taskset instead")
+    os.sched_setaffinity(0, cores[:threads])
+    return threads
+
+
+def xla_thread_count() -> int | None:
+    """Number of XLA CPU compute threads alive in this process (Linux; None elsewhere)."""
+    tasks = Path("/proc/self/task")
+    if not tasks.is_dir():
+        return None
+    count = 0
+    for task in tasks.iterdir():
+        try:
+            count += (task / "comm").read_text().strip() == XLA_THREAD_NAME
+        except OSError:
+            continue
+    return count
+
+
+def load_run_config(
+    workdir: str | os.PathLike,
+    config_spec: str | None = None,
+    overrides: list[str] | None = None,
+    data_root: str | os.PathLike | None = None,
+) -> ml_collections.ConfigDict:
+    """The config of a run: ``--config`` if given, else ``WORKDIR/config.json``.
+
+    ``data_root`` (``--data``) points ``data.root`` at a KITTI-format folder
+    (``data.source = 'kitti'``); ``overrides`` are ``key.sub=value`` strings.
+
+    Raises:
+      KittiFormatError: no config.json (naming the file and how to get one), or
+        an invalid config / override.
+    """
+    workdir = Path(workdir)
+    try:
+        if config_spec:
+            config = load_config(config_spec)
+        else:
+            path = workdir / "config.json"
+            if not path.is_file():
+                raise KittiFormatError(
+                    path,
+                    "run config not found: the trainer writes it (python train.py --task ... "
+                    f"--workdir {workdir}); for converted weights pass --config",
+                )
+            try:
+                config = ml_collections.ConfigDict(json.loads(path.read_text()))
+            except (json.JSONDecodeError, UnicodeDecodeError) as e:
+                raise KittiFormatError(path, f"not a JSON config ({e})") from None
+        apply_overrides(config, list(overrides or []))
+    except ConfigError as e:
+        raise KittiFormatError(config_spec or workdir / "config.json", str(e)) from None
+    if data_root is not None:
+        config.data.source = "kitti"
+        config.data.root = str(data_root)
+    return config
