@@ -1,6 +1,6 @@
 """Multi-process training: 2 processes on localhost (CPU, gloo) through ``train.py``.
 
-Every run is the ``:tiny`` detector on the 13 real KITTI frames with a global
+The detection runs are the ``:tiny`` detector on the 13 real KITTI frames with a global
 batch of 4 and plain SGD (patched in by the worker below: the update is linear
 in the gradient, so parameters of different process counts compare to float
 tolerance; Adam's m / sqrt(v) turns float-noise gradients of near-unused
@@ -21,6 +21,10 @@ One test, in the order a user would meet these situations:
 
 Two quick ones: a process that hangs while alive (heartbeats go on) is caught by
 the step watchdog on both sides; work directories that are not shared are refused.
+
+The depth trainer: two processes of its ``:tiny`` config on the embedded generated
+scenes (one random view per frame, the paper's epoch) make the same updates as one,
+and process 0 evaluates mid-run while process 1 waits.
 """
 
 from __future__ import annotations
@@ -51,8 +55,8 @@ import sys
 sys.path.insert(0, {str(REPO)!r})
 import optax
 import train
-from gac_jax.trainers import detect3d
-detect3d.make_optimizer = lambda *args, **kwargs: optax.sgd({SGD_LR})
+from gac_jax.trainers import depth, detect3d
+detect3d.make_optimizer = depth.make_optimizer = lambda *args, **kwargs: optax.sgd({SGD_LR})
 sys.exit(train.main(sys.argv[1:]))
 """
 
@@ -351,3 +355,63 @@ def test_a_work_directory_not_shared_by_all_processes_is_refused(kitti_object_ro
     assert procs[1].returncode == 2, out
     assert f"work directory {tmp_path / 'host1'} is not the one process 0 writes to" in out
     assert "must be on a filesystem shared by all hosts" in out
+
+
+def test_two_depth_processes_train_like_one(env, tmp_path):
+    from gac_jax.data.synthetic import generate_dataset
+
+    # The tiny config's scenes, generated here once so both runs can start together.
+    root = tmp_path / "data"
+    generate_dataset(root, 16, 0, height=188, width=621, val_fraction=0.3, workers=1)
+    steps = 6  # 5 per epoch: the second epoch's order and views are drawn anew
+
+    def args(workdir: Path, *extra: str) -> list[str]:
+        return [
+            "--task",
+            "depth",
+            "--config",
+            str(REPO / "configs" / "depth_default.py:tiny"),
+            "--workdir",
+            str(workdir),
+            f"data.root={root}",
+            "data.synthetic.val_fraction=0.3",
+            "data.train_views=random",  # the RandomViewLoader's shards (the Loader's: above)
+            f"train.num_steps={steps}",
+            "train.eval_at_end=False",
+            "train.keep_checkpoints=10",
+            # As above, no gradient that jumps when float noise crosses a threshold: the
+            # residual cut-off, |d log z| at the 0 of flat image regions, the GAC's sampling.
+            "loss.residual_clip=0.0",
+            "loss.smooth_weight=0.0",
+            "model.use_gac=False",
+            *extra,
+        ]
+
+    reference, workdir = tmp_path / "reference", tmp_path / "work"
+    runs = [
+        Run("depth_reference", args(reference, "train.checkpoint_every=1"), env, 1, tmp_path),
+        Run(
+            "depth_two",
+            args(workdir, "train.eval_every=2", "train.eval_max_batches=1"),
+            env,
+            2,
+            tmp_path,
+        ),
+    ]
+    codes = [run.wait(300) for run in runs]
+    assert codes == [[0], [0, 0]], "\n".join(run.tails() for run in runs)
+
+    # Process 0 alone reports progress and evaluates (step 2) while process 1 waits.
+    two = runs[1]
+    assert "step 3/6" in two.log(0) and "step 3/6" not in two.log(1)
+    evaluation = json.loads((workdir / "results" / "step_2" / "metrics.json").read_text())
+    assert evaluation["num_scored"] == 2 and np.isfinite(evaluation["metrics"]["silog"])
+    assert (workdir / "prior_mean.json").read_text() == (reference / "prior_mean.json").read_text()
+
+    # The same updates on the same global batches: every logged loss, and the parameters.
+    losses, expected = train_losses(workdir), train_losses(reference)
+    assert sorted(losses) == sorted(expected) == list(range(1, steps + 1))
+    np.testing.assert_allclose(
+        [losses[s] for s in losses], [expected[s] for s in losses], rtol=1e-5
+    )
+    assert_params_close(workdir, reference, steps)

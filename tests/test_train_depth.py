@@ -228,7 +228,8 @@ def test_configs_build_the_paper_base_and_reference_models(depth_root):
     # 'random' views: one item per frame and epoch, on the paper's 352x1216 crop.
     paper.data.root, paper.data.num_workers = str(depth_root), 0
     source = depth.train_source(paper, depth_root)
-    loader = depth.make_train_loader(paper, source, per_process_batch=1)
+    mesh = parallel.make_mesh(jax.devices()[:1])
+    loader = depth.make_train_loader(paper, source, per_process_batch=1, mesh=mesh)
     assert len(source) == 2 and loader.steps_per_epoch == 1
     batch = loader.load_batch(0)
     assert batch["image"].shape == (1, 352, 1216, 3) and batch["depth"].shape == (1, 352, 1216)

@@ -17,10 +17,17 @@ columns (zero-padded when narrower) at test time.
 The network regresses log depth around a constant ``prior_mean``: the mean log GT depth of
 the training split (:func:`~gac_jax.models.depth_unet.mean_log_depth`), computed once and
 kept in ``WORKDIR/prior_mean.json`` so a resumed run and ``evaluate.py`` use the same value.
+
+Multi-process runs (docs/multihost.md) as the detection trainer: each process loads its rows of
+every global batch, process 0 generates the data and computes the prior mean while the others
+wait, evaluation runs on process 0 alone, a lost or hung peer stops the others
+(:class:`~gac_jax.multiprocess.PeerLostError`) and SIGTERM stops all at the same step after a
+checkpoint.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from pathlib import Path
@@ -30,7 +37,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from gac_jax import parallel
+from gac_jax import multiprocess, parallel
 from gac_jax.checkpointing import Checkpoints
 from gac_jax.config import save_config
 from gac_jax.data import transforms
@@ -149,13 +156,16 @@ def open_eval_data(path: Path, split: str, cameras: tuple[int, ...]):
     return open_depth_source(path, split, cameras)
 
 
-def make_train_loader(config, source, per_process_batch: int) -> Loader:
+def make_train_loader(config, source, per_process_batch: int, mesh) -> Loader:
+    """This process's rows of every global batch (its block of ``mesh``, see
+    :func:`gac_jax.parallel.process_shard`)."""
     d = config.data
+    shard_index, num_shards = parallel.process_shard(mesh)
     kwargs = dict(
         batch_size=per_process_batch,
         seed=config.seed,
-        shard_index=jax.process_index(),
-        num_shards=jax.process_count(),
+        shard_index=shard_index,
+        num_shards=num_shards,
         worker_count=d.num_workers,
     )
     if d.train_views == "random":
@@ -178,23 +188,21 @@ def load_or_compute_prior_mean(config, source, workdir: Path) -> float:
     """``prior_mean`` from ``WORKDIR/prior_mean.json``, or computed from the training GT.
 
     Uses up to ``model.prior_max_frames`` items spread evenly over the split (0 = all) and
-    the loss's depth range; process 0 computes and writes, the others read.
+    the loss's depth range. In a multi-process run process 0 computes and writes while the
+    others wait (with a timeout), then they read its file.
     """
     path = workdir / PRIOR_FILE
-    if not path.exists() and jax.process_index() == 0:
-        n, limit = len(source), config.model.prior_max_frames
-        index = np.arange(n) if not limit or limit >= n else np.linspace(0, n - 1, limit)
-        picked = np.unique(index.round().astype(np.int64))
-        maps = (ground_truth_depth(source, int(i)) for i in picked)
-        value = mean_log_depth(maps, config.loss.min_depth, config.loss.max_depth)
-        record = {"prior_mean": value, "num_items": len(picked)}
-        with atomic_write(path) as f:
-            json.dump(record, f, indent=2)
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
-
-        multihost_utils.sync_global_devices("gac_jax_prior_mean_ready")
-    return float(json.loads(path.read_text())["prior_mean"])
+    with multiprocess.main_process_first("prior_mean"):
+        if not path.exists() and multiprocess.is_main_process():
+            n, limit = len(source), config.model.prior_max_frames
+            index = np.arange(n) if not limit or limit >= n else np.linspace(0, n - 1, limit)
+            picked = np.unique(index.round().astype(np.int64))
+            maps = (ground_truth_depth(source, int(i)) for i in picked)
+            value = mean_log_depth(maps, config.loss.min_depth, config.loss.max_depth)
+            record = {"prior_mean": value, "num_items": len(picked)}
+            with atomic_write(path) as f:
+                json.dump(record, f, indent=2)
+        return read_prior_mean(workdir)
 
 
 def read_prior_mean(workdir: Path) -> float:
@@ -281,6 +289,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     if is_main:
         workdir.mkdir(parents=True, exist_ok=True)
         save_config(config, workdir)
+    multiprocess.check_shared_directory(workdir)
 
     # Mesh.
     mesh = parallel.make_mesh()
@@ -289,11 +298,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     # Data.
     root = depth_root(config.data)
     source = train_source(config, root)
-    loader = make_train_loader(config, source, per_process_batch)
+    loader = make_train_loader(config, source, per_process_batch, mesh)
     steps_per_epoch = loader.steps_per_epoch
     total_steps = config.train.num_steps or config.train.num_epochs * steps_per_epoch
 
-    # Prior mean (numpy, once; a constant of the compiled graph).
+    # Prior mean (numpy, once; a constant of the compiled graph; process 0 computes it).
     prior_mean = load_or_compute_prior_mean(config, source, workdir)
 
     # Model and optimizer.
@@ -334,13 +343,16 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
             json.dump(out, f, indent=2)
         return out
 
-    # Loop.
+    # Loop. In a multi-process run the watchdog stops a process whose peers hang.
+    hint = f"Restart all processes to resume from the last checkpoint in {checkpoints.directory}."
+    watchdog = multiprocess.ProgressWatchdog(hint=hint)
     compile_t0 = time.perf_counter()
     step = start_step
     try:
         for batch in loader.iterate(start_step, total_steps - start_step):
             state, metrics = train_step(state, parallel.to_global(batch, mesh))
             step += 1
+            watchdog.step(step, metrics)
             if step == start_step + 1:
                 jax.block_until_ready(metrics)
                 writer.write(step, kind="compile", compile_s=time.perf_counter() - compile_t0)
@@ -350,16 +362,31 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
                 stats = progress.update(step, float(m["loss"]), {"si_1": float(m["si/scale_1"])})
                 lr = float(schedule(step - 1))
                 writer.write(step, lr=lr, **{k: float(v) for k, v in m.items()}, **stats)
+            if multiprocess.preemption_requested(step):  # SIGTERM to any process: all stop here
+                save(step)
+                raise multiprocess.PreemptedError(
+                    f"stopped at step {step} on a preemption notice (SIGTERM); checkpoint saved "
+                    f"in {checkpoints.directory}. Run the same command again to resume."
+                )
             if step % config.train.checkpoint_every == 0 and step < total_steps:
                 save(step)
             every = config.train.eval_every
-            if is_main and every and step % every == 0 and step < total_steps:
-                run_evaluation(step)
+            if every and step % every == 0 and step < total_steps:
+                # Evaluation runs on process 0 alone; the others wait at a barrier.
+                multiprocess.run_on_main(
+                    functools.partial(run_evaluation, step), f"eval_{step}", watchdog
+                )
+        if step > start_step or checkpoints.latest_step() != step:
+            save(step)
+        checkpoints.wait()
+    except Exception as e:
+        multiprocess.raise_if_peer_failure(e, hint)  # a clear PeerLostError instead of a gloo error
+        raise
     finally:
+        watchdog.close()
         progress.close()
-    if step > start_step or checkpoints.latest_step() != step:
-        save(step)
-    checkpoints.wait()
-    result = run_evaluation(step) if is_main and config.train.eval_at_end else {}
+    result = None
+    if config.train.eval_at_end:
+        result = multiprocess.run_on_main(functools.partial(run_evaluation, step), "eval_final")
     checkpoints.close()
-    return result
+    return result or {}
