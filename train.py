@@ -51,7 +51,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--wait-timeout",
         type=float,
         help="multi-process: seconds the other processes wait for process 0's evaluation, "
-        "dataset generation or anchor priors (7200)",
+        "dataset generation, anchor priors or depth prior mean (7200)",
     )
     parser.add_argument("overrides", nargs="*", help="config overrides, key.sub=value")
     return parser.parse_args(argv)
