@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
 import sys
 import time
@@ -30,6 +28,8 @@ import jax
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from machine_info import describe_machine  # noqa: E402  (benchmarks/ is on sys.path)
 
 from gac_jax import parallel  # noqa: E402
 from gac_jax.config import load_config  # noqa: E402
@@ -42,30 +42,6 @@ REPO = Path(__file__).resolve().parents[1]
 P_CROP = np.array(
     [[721.5377, 0.0, 609.5593, 44.85728], [0.0, 721.5377, 149.854, 0.2163791], [0, 0, 1, 0.00274]]
 )
-
-
-def machine() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        load = os.getloadavg()
-    except OSError:
-        load = None
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "devices": [str(d) for d in jax.devices()],
-        "load_average_at_start": load,
-    }
 
 
 def timed(fn, repeats: int) -> tuple[float, float, list[float], float]:
@@ -161,7 +137,7 @@ def main(argv=None) -> int:
     init_s = time.perf_counter() - t0
     params = sum(x.size for x in jax.tree.leaves(variables["params"]))
     record = {
-        "machine": machine(),
+        "machine": describe_machine("numpy", "jax"),
         "model": {
             "config": spec.split("/")[-1],
             "encoder": f"ResNet-{config.model.encoder_depth} width {config.model.encoder_width}",

@@ -26,11 +26,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from machine_info import describe_machine, one_line  # benchmarks/ is on sys.path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -132,10 +133,9 @@ def main(argv=None) -> int:
 
     from gac_jax.evaluation.detection_model_eval import evaluate_detector_workdir
 
-    load = os.getloadavg()
     print(
-        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {threads} XLA "
-        f"threads, load average {load[0]:.2f}; frames from {args.data}",
+        f"{one_line(describe_machine('numpy', 'jax'))}, {threads} XLA threads; "
+        f"frames from {args.data}",
         flush=True,
     )
     rows, models = [], {}

@@ -13,8 +13,6 @@ about 5-20 per frame. Everything is generated in memory with a fixed seed.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
 import sys
 import time
@@ -23,6 +21,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from machine_info import describe_machine, one_line  # noqa: E402  (benchmarks/ is on sys.path)
 
 from gac_jax import geometry  # noqa: E402
 from gac_jax.data.kitti import KittiObjects  # noqa: E402
@@ -167,20 +167,6 @@ def generate_dataset(num_frames: int = 3769, seed: int = 0):
     return gts, dts
 
 
-def machine() -> str:
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (
-        f"{os.cpu_count()} cores, {cpu}, python {platform.python_version()}, numpy {np.__version__}"
-    )
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=3769)
@@ -194,7 +180,7 @@ def main(argv=None) -> int:
     t_gen = time.perf_counter() - t0
     n_gt = sum(len(g) for g in gts)
     n_dt = sum(len(d) for d in dts)
-    print(f"machine: {machine()}")
+    print(f"machine: {one_line(describe_machine('numpy'))}")
     print(
         f"data: {args.frames} frames, {n_gt} ground-truth objects, {n_dt} detections "
         f"({n_dt / args.frames:.1f}/frame), generated in {t_gen:.1f} s"

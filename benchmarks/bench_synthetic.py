@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
 import statistics
 import sys
@@ -22,32 +21,11 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from machine_info import describe_machine  # noqa: E402  (benchmarks/ is on sys.path)
+
 from gac_jax.data.synthetic.writer import generate_dataset  # noqa: E402
-
-
-def machine() -> dict:
-    model = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return {
-        "cores": os.cpu_count(),
-        "cpu": model,
-        "load_avg_1min_before": round(load, 2),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "opencv": cv2.__version__,
-    }
 
 
 def main() -> None:
@@ -59,7 +37,7 @@ def main() -> None:
     p.add_argument("--width", type=int, default=1242)
     p.add_argument("--out", default=None, help="directory to write into (default: a temp dir)")
     args = p.parse_args()
-    report = {"machine": machine(), "image_size": [args.height, args.width]}
+    report = {"machine": describe_machine("numpy", "cv2"), "image_size": [args.height, args.width]}
     tmp = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="bench_synthetic_"))
     try:
         if args.num > 0:

@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 from pathlib import Path
+
+from machine_info import describe_machine  # noqa: E402  (benchmarks/ is on sys.path)
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
@@ -124,27 +124,6 @@ def run_case(config_spec: str, batch_size: int, steps: int) -> dict:
     }
 
 
-def machine() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import jax
-
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "devices": str(jax.devices()),
-        "xla_flags": os.environ.get("XLA_FLAGS", ""),
-    }
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--configs", default="paper,default")
@@ -177,7 +156,7 @@ def main() -> None:
                 result = json.loads(proc.stdout.strip().splitlines()[-1])
             results.append(result)
             print(json.dumps(result), flush=True)
-    report = {"machine": machine(), "results": results}
+    report = {"machine": describe_machine("numpy", "jax"), "results": results}
     print(json.dumps(report["machine"]))
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
