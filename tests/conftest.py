@@ -29,6 +29,13 @@ def pytest_configure(config):
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _JIT_CACHE
     os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
+    # Tiny test models compile about twice as fast without XLA's expensive CPU passes;
+    # results stay within float tolerance (the tests compare with tolerances anyway).
+    flags = os.environ.get("XLA_FLAGS", "")
+    for flag in ("--xla_backend_optimization_level=0", "--xla_llvm_disable_expensive_passes=true"):
+        if flag.split("=")[0] not in flags:
+            flags = f"{flags} {flag}".strip()
+    os.environ["XLA_FLAGS"] = flags
 
 
 def pytest_unconfigure(config):
