@@ -86,6 +86,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.loss.regression_weights = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 3.0, 1.0, 1.0, 0.5, 0.5, 0.5, 1.0)
     c.loss.pos_iou = 0.5
     c.loss.neg_iou = 0.4
+    c.loss.match_low_quality = False  # reference: no best-anchor forcing for each GT
     c.loss.normalize_by = "reference"
 
     c.train = ml_collections.ConfigDict()

@@ -133,6 +133,7 @@ def loss_config(config: ml_collections.ConfigDict) -> DetectionLossConfig:
         regression_weights=tuple(lc.regression_weights),
         pos_iou=lc.pos_iou,
         neg_iou=lc.neg_iou,
+        match_low_quality=lc.get("match_low_quality", False),  # absent in older workdirs
         normalize_by=lc.normalize_by,
     )
 
