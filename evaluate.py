@@ -2,7 +2,10 @@
 
 import sys
 
-from gac_jax.evaluation.cli import main
+from gac_jax.cpu_backend import apply_default_xla_flags
 
 if __name__ == "__main__":
+    apply_default_xla_flags()  # before JAX starts its backend
+    from gac_jax.evaluation.cli import main
+
     sys.exit(main())

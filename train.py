@@ -59,6 +59,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    from gac_jax.cpu_backend import apply_default_xla_flags
+
+    apply_default_xla_flags()  # before JAX starts its backend
     from gac_jax import multiprocess
 
     try:

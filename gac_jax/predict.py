@@ -215,6 +215,9 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from gac_jax.cpu_backend import apply_default_xla_flags
+
+    apply_default_xla_flags()  # before JAX starts its backend
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.checkpoint and args.step is not None:
