@@ -54,6 +54,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.anchors.num_scales = 16
     c.anchors.scale_step = 0.25  # scales 2^(i * step)
     c.anchors.angle_mode = "double"  # priors/regression of sin 2a, cos 2a + sign bit (reference)
+    c.anchors.sign_axis = 0.0  # sign bit 1[cos(a - axis) > 0]; 0 = reference, see box_coding
     c.anchors.prior_iou = 0.5
     c.anchors.prior_min_count = 10
     c.anchors.filter = True

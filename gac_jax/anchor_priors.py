@@ -378,6 +378,7 @@ class DetectionConstants:
       prior_valid: (K, N) bool.
       dims_mean, dims_std: (K, 3) class-global ``(h, w, l)``.
       angle_mode: static; ``"double"`` or ``"single"``.
+      sign_axis: static; direction of the alpha-sign bit (:func:`gac_jax.box_coding.encode`).
     """
 
     anchor_boxes: jax.Array
@@ -388,13 +389,16 @@ class DetectionConstants:
     dims_mean: jax.Array
     dims_std: jax.Array
     angle_mode: str = flax.struct.field(pytree_node=False, default="double")
+    sign_axis: float = flax.struct.field(pytree_node=False, default=0.0)
 
     @property
     def num_classes(self) -> int:
         return int(self.prior_valid.shape[0])
 
 
-def make_detection_constants(anchors: Anchors, priors: AnchorPriors) -> DetectionConstants:
+def make_detection_constants(
+    anchors: Anchors, priors: AnchorPriors, sign_axis: float = 0.0
+) -> DetectionConstants:
     """Gathers the per-bin priors to every anchor (checks that the layouts agree)."""
     priors.check_compatible(anchors.layout, source="<priors given to make_detection_constants>")
     idx = anchors.bin_index
@@ -407,4 +411,5 @@ def make_detection_constants(anchors: Anchors, priors: AnchorPriors) -> Detectio
         dims_mean=jnp.asarray(priors.dims_mean, jnp.float32),
         dims_std=jnp.asarray(priors.dims_std, jnp.float32),
         angle_mode=priors.angle_mode,
+        sign_axis=float(sign_axis),
     )

@@ -76,6 +76,7 @@ def _encode(
     dims_mean,
     dims_std,
     angle_mode,
+    sign_axis=0.0,
 ):
     _check_mode(angle_mode)
     px, py, pw, ph = _cxcywh(xp, anchors)
@@ -96,7 +97,7 @@ def _encode(
     targets = xp.concatenate(
         [xp.stack(box_terms, axis=-1), prior_terms, dims_terms[..., list(_HWL_TO_WHL)]], axis=-1
     )
-    sign = (xp.cos(gt_alpha) > 0).astype(targets.dtype)
+    sign = (xp.cos(gt_alpha - sign_axis) > 0).astype(targets.dtype)
     return targets, sign
 
 
@@ -111,6 +112,7 @@ def _decode(
     dims_std,
     angle_mode,
     wrap_alpha,
+    sign_axis=0.0,
 ):
     _check_mode(angle_mode)
     px, py, pw, ph = _cxcywh(xp, anchors)
@@ -126,7 +128,9 @@ def _decode(
     values_3d = deltas[..., 6:9] * prior_std + prior_mean
     s, c = values_3d[..., 1], values_3d[..., 2]
     if angle_mode == "double":
-        alpha = xp.arctan2(s, c) / 2.0
+        alpha = xp.arctan2(s, c) / 2.0  # (-pi/2, pi/2]; alpha or alpha + pi
+        if sign_axis:  # the candidate on the positive side of the axis, then the sign bit
+            alpha = xp.where(xp.cos(alpha - sign_axis) >= 0.0, alpha, alpha + np.pi)
         alpha = xp.where(sign_logit < 0.0, alpha + np.pi, alpha)  # sigmoid(x) < 0.5 <=> x < 0
     else:
         alpha = xp.arctan2(s, c)
@@ -155,6 +159,7 @@ def encode(
     dims_std,
     *,
     angle_mode: str = "double",
+    sign_axis: float = 0.0,
 ) -> tuple[jax.Array, jax.Array]:
     """Regression targets of GT boxes relative to anchors (jnp, broadcasting leading dims ``...``).
 
@@ -168,12 +173,17 @@ def encode(
       prior_mean, prior_std: (..., 3) anchor-bin prior of ``[z, sin, cos]`` for the GT's class.
       dims_mean, dims_std: (..., 3) class prior of ``(h, w, l)``.
       angle_mode: ``"double"`` (reference) or ``"single"`` (paper).
+      sign_axis: direction ``t`` of the sign bit, ``1[cos(a - t) > 0]``: 0 is the
+        reference's ``1[cos a > 0]``, which is ambiguous for objects seen from straight
+        behind or ahead (``a`` near +-pi/2, the commonest case in driving data); pi/4
+        moves the ambiguity to oblique views (see :func:`decode`).
 
     Returns:
-      targets (..., 12) in :data:`REGRESSION_NAMES` order, sign target (...) ``1[cos a > 0]``.
+      targets (..., 12) in :data:`REGRESSION_NAMES` order, sign target (...)
+      ``1[cos(a - sign_axis) > 0]``.
     """
     args = (gt_boxes, gt_center, gt_depth, gt_dims, gt_alpha, prior_mean, prior_std)
-    return _encode(jnp, anchor_boxes, *args, dims_mean, dims_std, angle_mode)
+    return _encode(jnp, anchor_boxes, *args, dims_mean, dims_std, angle_mode, sign_axis)
 
 
 def decode(
@@ -187,8 +197,16 @@ def decode(
     *,
     angle_mode: str = "double",
     wrap_alpha: bool = False,
+    sign_axis: float = 0.0,
 ) -> dict[str, jax.Array]:
     """Inverse of :func:`encode` (jnp).
+
+    With ``angle_mode="double"`` the regression gives ``a0 = atan2(s, c) / 2``, i.e.
+    ``a`` up to pi. The candidate of ``{a0, a0 + pi}`` on the positive side of
+    ``sign_axis`` is taken, plus pi when the sign bit says so. For ``sign_axis = 0`` this
+    is exactly the reference (``a0``, plus pi if ``sigmoid(sign) < 0.5``). Near
+    ``a = sign_axis +- pi/2`` both the branch of ``atan2`` and the bit flip on small
+    errors; elsewhere the choice is stable.
 
     Args:
       anchor_boxes: (..., 4); deltas: (..., 12) network regression output;
@@ -200,19 +218,23 @@ def decode(
       ``'alpha'`` (...).
     """
     args = (deltas, sign_logit, prior_mean, prior_std, dims_mean, dims_std)
-    return _decode(jnp, anchor_boxes, *args, angle_mode, wrap_alpha)
+    return _decode(jnp, anchor_boxes, *args, angle_mode, wrap_alpha, sign_axis)
 
 
-def encode_np(*args, angle_mode: str = "double") -> tuple[np.ndarray, np.ndarray]:
+def encode_np(
+    *args, angle_mode: str = "double", sign_axis: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Float64 numpy twin of :func:`encode` (same positional arguments)."""
     args = [np.asarray(a, dtype=np.float64) for a in args]
-    return _encode(np, *args, angle_mode)
+    return _encode(np, *args, angle_mode, sign_axis)
 
 
-def decode_np(*args, angle_mode: str = "double", wrap_alpha: bool = False) -> dict[str, np.ndarray]:
+def decode_np(
+    *args, angle_mode: str = "double", wrap_alpha: bool = False, sign_axis: float = 0.0
+) -> dict[str, np.ndarray]:
     """Float64 numpy twin of :func:`decode` (same positional arguments)."""
     args = [np.asarray(a, dtype=np.float64) for a in args]
-    return _decode(np, *args, angle_mode, wrap_alpha)
+    return _decode(np, *args, angle_mode, wrap_alpha, sign_axis)
 
 
 def gather_priors(
@@ -266,6 +288,7 @@ def decode_outputs(
         dims_mean,
         dims_std,
         angle_mode=constants.angle_mode,
+        sign_axis=constants.sign_axis,
         wrap_alpha=wrap_alpha,
     )
     n = jnp.arange(labels.shape[1])[None, :]

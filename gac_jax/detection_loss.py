@@ -216,6 +216,7 @@ def detection_loss_terms(
         dims_mean,
         dims_std,
         angle_mode=constants.angle_mode,
+        sign_axis=constants.sign_axis,
     )
     targets = jax.lax.stop_gradient(jnp.where(positive[..., None], targets, 0.0))
     reg = smooth_l1_loss(

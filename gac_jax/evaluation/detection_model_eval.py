@@ -56,6 +56,7 @@ from gac_jax.trainers.detect3d import (
     compute_priors,
     eval_transform,
     filter_options,
+    sign_axis,
 )
 
 PRIORS_FILE = "anchor_priors.npz"
@@ -185,7 +186,7 @@ def load_detector(
     workdir = Path(workdir)
     layout = anchor_layout(config)
     priors = _load_priors(config, workdir, layout, converted=checkpoint is not None)
-    constants = make_detection_constants(generate_anchors(layout), priors)
+    constants = make_detection_constants(generate_anchors(layout), priors, sign_axis(config))
     model = build_model(config, layout.anchors_per_cell).clone(dtype=dtype)
     template = _variables_template(model, config)
     if checkpoint is not None:

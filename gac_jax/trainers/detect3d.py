@@ -138,6 +138,11 @@ def loss_config(config: ml_collections.ConfigDict) -> DetectionLossConfig:
     )
 
 
+def sign_axis(config: ml_collections.ConfigDict) -> float:
+    """Direction of the alpha-sign bit (0 = reference; absent in older workdirs' configs)."""
+    return float(config.anchors.get("sign_axis", 0.0))
+
+
 def filter_options(config: ml_collections.ConfigDict) -> dict:
     return {
         "mode": config.anchors.filter_mode,
@@ -324,7 +329,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     anchors = generate_anchors(layout)
     with multiprocess.main_process_first("anchor_priors"):  # the others read process 0's cache
         priors = compute_priors(config, root, layout, workdir)
-    constants = make_detection_constants(anchors, priors)
+    constants = make_detection_constants(anchors, priors, sign_axis(config))
 
     # Model and optimizer.
     model = build_model(config, layout.anchors_per_cell)
