@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from gac_jax.cpu_backend import apply_default_xla_flags
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED = REPO_ROOT.parent / "shared"
 KITTI_SAMPLES = SHARED / "data" / "kitti_samples"
@@ -36,6 +38,9 @@ def pytest_configure(config):
         if flag.split("=")[0] not in flags:
             flags = f"{flags} {flag}".strip()
     os.environ["XLA_FLAGS"] = flags
+    # The entry points' own CPU flags, so that code run in this process compiles exactly
+    # like the train.py subprocesses it is compared with (bit-level resume checks).
+    apply_default_xla_flags(os.environ)
 
 
 def pytest_unconfigure(config):
