@@ -5,7 +5,7 @@
     python evaluate.py --task detect3d --workdir W [--step N] ...   # model mode, see
         gac_jax/evaluation/detection_model_eval.py
     python evaluate.py --task depth --workdir W [--data DIR] [--split S] [--step N] [--out DIR]
-    python evaluate.py --task depth --baseline ground-plane (--data DIR | --workdir W)
+    python evaluate.py --task depth --baseline {ground-plane,row-mean} (--data DIR | --workdir W)
 
 The offline scorers are plain functions returning the result dict
 (:func:`evaluate_detection_folders`, :func:`evaluate_depth_folders`); a mode that
@@ -151,7 +151,11 @@ def build_parser() -> argparse.ArgumentParser:
     dep.add_argument("--prediction-dir", help="folder of 16-bit predicted depth PNGs (same paths)")
     # Depth model mode (gac_jax/evaluation/depth_workdir.py); --workdir, --data, --split and
     # --step are the shared model-mode options below.
-    dep.add_argument("--baseline", choices=("ground-plane",), help="score a no-learning baseline")
+    dep.add_argument(
+        "--baseline",
+        choices=("ground-plane", "row-mean"),
+        help="score a no-learning baseline (row-mean: fitted on the train split of the data)",
+    )
     dep.add_argument("--out", help="folder for the predicted 16-bit PNGs")
     add_model_mode_arguments(parser)
     return parser

@@ -1,8 +1,8 @@
-"""``evaluate.py``'s depth model mode: a trained depth workdir, or the ground-plane baseline.
+"""``evaluate.py``'s depth model mode: a trained depth workdir, or a no-learning baseline.
 
     python evaluate.py --task depth --workdir W [--data DIR] [--split val] [--step N]
                        [--out DIR] [--json OUT]
-    python evaluate.py --task depth --baseline ground-plane (--data DIR | --workdir W)
+    python evaluate.py --task depth --baseline {ground-plane,row-mean} (--data DIR | --workdir W)
                        [--split val] [--out DIR] [--json OUT]
 
 ``--data`` is a KITTI-depth root (frames of ``data_depth_annotated/<split>``) or a
@@ -10,6 +10,9 @@
 written, nothing is scored). Without it, the workdir's own evaluation data is used. The
 model mode writes 16-bit PNGs, pictures and ``metrics.json`` to ``--out`` (default
 ``W/eval/step_N_<split>``); the baseline writes PNGs only when ``--out`` is given.
+Baselines: ``ground-plane`` (the per-row ground depth of a camera 1.65 m above a flat
+road) and ``row-mean`` (each row's mean log-depth over the ``train`` split of the same
+data, :mod:`gac_jax.evaluation.depth_baselines`).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import ml_collections
 from gac_jax.checkpointing import Checkpoints
 from gac_jax.data import transforms
 from gac_jax.data.files import KittiFormatError, atomic_write
+from gac_jax.evaluation.depth_baselines import RowMeanPredictor, fit_row_log_depth
 from gac_jax.evaluation.depth_evaluator import (
     BASELINE_CAMERA_HEIGHT,
     BASELINE_MAX_DEPTH,
@@ -34,7 +38,7 @@ from gac_jax.evaluation.depth_evaluator import (
 from gac_jax.evaluation.depth_metrics import format_depth_table
 from gac_jax.train_state import TrainState, learning_rate_schedule, make_optimizer
 
-BASELINES = ("ground-plane",)
+BASELINES = ("ground-plane", "row-mean")
 
 
 def load_workdir_config(workdir: str | Path) -> ml_collections.ConfigDict:
@@ -142,13 +146,15 @@ def evaluate_baseline(
     # The baseline reads only P2 and the geometry: a small fixed view keeps batches cheap.
     view = transforms.Compose([transforms.Resize(32, 128)])
     evaluator = DepthEvaluator(source, view, batch_size=8, num_pictures=0)
-    predictor = GroundPlanePredictor(BASELINE_CAMERA_HEIGHT, BASELINE_MAX_DEPTH)
+    if name == "ground-plane":
+        predictor = GroundPlanePredictor(BASELINE_CAMERA_HEIGHT, BASELINE_MAX_DEPTH)
+        described = {"camera_height": BASELINE_CAMERA_HEIGHT, "max_depth": BASELINE_MAX_DEPTH}
+    else:
+        fit_on = _data_source(config, data, "train")
+        predictor = RowMeanPredictor(fit_row_log_depth(fit_on))
+        described = {"fitted_on": "train", "fitted_frames": len(fit_on)}
     result = evaluator.evaluate(predictor, Path(out) if out else None, resume=False)
-    result["baseline"] = {
-        "name": name,
-        "camera_height": BASELINE_CAMERA_HEIGHT,
-        "max_depth": BASELINE_MAX_DEPTH,
-    }
+    result["baseline"] = {"name": name, **described}
     print(f"{result['num_frames']} frames, {name} baseline")
     return result
 
