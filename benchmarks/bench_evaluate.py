@@ -9,7 +9,7 @@ goes through NMS and hill climbing (an upper bound of the post-processing work).
 Priors are computed from the same frames (min count 1).
 
 Configs: ``paper`` = configs/detect3d_kitti.py (ResNet-101, 288x1280, batch 1);
-``default`` = configs/detect3d_default.py (ResNet-18, 96x432, its eval batch of 8).
+``default`` = configs/detect3d_default.py (half-width ResNet-18, 160x720, its eval batch of 8).
 Each runs in float32 and with ``Detector(dtype=bfloat16)`` (float32 parameters); as the
 machine may be shared, the dtypes are also compared on the model call alone with the calls
 alternating (same load for both), in wall and process-CPU time.
