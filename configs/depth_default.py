@@ -8,10 +8,11 @@ frame, photometric distortion, mirroring) for 5 epochs on the ``depth/`` folders
 embedded KITTI-format scenes (the detector's cache: ``data.source='synthetic'``), then
 evaluates itself on the left views of the generated val split: KITTI depth metrics, 16-bit
 PNGs and pictures under ``WORKDIR/results/step_N``. Evaluation sees the whole width
-(``eval_width`` 352 covers the 339 resized columns). Compare with the ground-plane baseline
-and the Base U-Net::
+(``eval_width`` 352 covers the 339 resized columns). Compare with the ground-plane and
+row-mean baselines and the Base U-Net::
 
     python evaluate.py --task depth --baseline ground-plane --workdir WORKDIR
+    python evaluate.py --task depth --baseline row-mean --workdir WORKDIR
     python train.py --task depth --config configs/depth_default.py:base
 
 Variants: ``:tiny`` (tests, seconds), ``:base`` (no GAC, the "Base U-Net").
