@@ -29,6 +29,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from gac_jax.cpu_backend import apply_default_xla_flags  # noqa: E402
+
+# Measure what train.py / evaluate.py run with (GAC_JAX_DEFAULT_XLA_FLAGS=0: JAX's own).
+apply_default_xla_flags()
+
 from machine_info import describe_machine  # noqa: E402  (benchmarks/ is on sys.path)
 
 from gac_jax import parallel  # noqa: E402

@@ -35,6 +35,10 @@ from machine_info import describe_machine, one_line  # benchmarks/ is on sys.pat
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from gac_jax.cpu_backend import apply_default_xla_flags  # noqa: E402
+
+# Measure what train.py / evaluate.py run with (GAC_JAX_DEFAULT_XLA_FLAGS=0: JAX's own).
+apply_default_xla_flags()
 
 KITTI = REPO.parent / "shared" / "data" / "kitti_samples" / "object"
 CONFIGS = {

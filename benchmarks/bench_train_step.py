@@ -22,6 +22,10 @@ from machine_info import describe_machine  # noqa: E402  (benchmarks/ is on sys.
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
+from gac_jax.cpu_backend import apply_default_xla_flags  # noqa: E402
+
+# Measure what train.py / evaluate.py run with (GAC_JAX_DEFAULT_XLA_FLAGS=0: JAX's own).
+apply_default_xla_flags()
 CONFIGS = {
     "paper": str(REPO / "configs" / "detect3d_kitti.py"),
     "default": str(REPO / "configs" / "detect3d_default.py"),

@@ -1,10 +1,11 @@
 """Default XLA flags for the CPU backend, applied by the entry points before JAX starts.
 
-Measured on the 2-core development machine (``benchmarks/bench_train_step.py``, default
-detector config, batch 8): XLA's experimental YNNPACK fusions make the train step about
-a third slower (0.94 s vs 0.62 s per step), so the entry points switch them off with
-``--xla_cpu_experimental_ynn_fusion_type=`` (an empty list of fusion types). Flags only
-affect the CPU backend. A user's own ``XLA_FLAGS`` entry for the same flag wins, and
+Measured with ``benchmarks/bench_train_step.py`` (default detector config, batch 8; run it
+with ``GAC_JAX_DEFAULT_XLA_FLAGS=0`` for JAX's own flags): XLA's experimental YNNPACK
+fusions make the train step slower, 0.94 s vs 0.62 s per step on a 2-core Intel Xeon and
+2.49 s vs 1.10 s on a 2-core AMD EPYC, so the entry points (and the benchmarks) switch them
+off with ``--xla_cpu_experimental_ynn_fusion_type=`` (an empty list of fusion types).
+Flags only affect the CPU backend. A user's own ``XLA_FLAGS`` entry for the same flag wins, and
 ``GAC_JAX_DEFAULT_XLA_FLAGS=0`` leaves ``XLA_FLAGS`` untouched.
 """
 
