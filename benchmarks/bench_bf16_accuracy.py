@@ -28,6 +28,7 @@ import jax.numpy as jnp  # noqa: E402
 from machine_info import describe_machine, one_line  # noqa: E402  (benchmarks/ on sys.path)
 
 from gac_jax.evaluation.detection_model_eval import evaluate_detector_workdir  # noqa: E402
+from gac_jax.evaluation.kitti_object import DIFFICULTIES  # noqa: E402
 
 
 def flat_ap(metrics: dict) -> dict[str, float]:
@@ -39,7 +40,7 @@ def flat_ap(metrics: dict) -> dict[str, float]:
         for cls, ious in classes.items():
             for iou, kinds in ious.items():
                 for kind, values in kinds.items():
-                    for name, v in zip(("easy", "moderate", "hard"), values, strict=True):
+                    for name, v in zip(DIFFICULTIES, values, strict=True):
                         out[f"{ap}/{cls}/{iou}/{kind}/{name}"] = float(v)
     return out
 
