@@ -37,6 +37,7 @@ apply_default_xla_flags()
 from machine_info import describe_machine  # noqa: E402  (benchmarks/ is on sys.path)
 
 from gac_jax import parallel  # noqa: E402
+from gac_jax.builders import depth as depth_builders  # noqa: E402
 from gac_jax.config import load_config  # noqa: E402
 from gac_jax.train_state import learning_rate_schedule, make_optimizer  # noqa: E402
 from gac_jax.trainers import depth  # noqa: E402
@@ -102,7 +103,7 @@ def bench_train(config, model, variables, batch: int, repeats: int) -> dict:
     tx = make_optimizer(schedule, config.train.clip_norm, config.train.weight_decay)
     host = jax.tree.map(np.asarray, variables)
     state, sharding = create_train_state(host, tx, 0, mesh)
-    step = depth.make_train_step(model, tx, depth.loss_options(config), mesh, sharding)
+    step = depth.make_train_step(model, tx, depth_builders.loss_options(config), mesh, sharding)
     images, P, gt = inputs(config, batch, d.width, seed=batch)
     arrays = parallel.to_global({"image": images, "P2": P, "depth": gt}, mesh)
     holder = {"state": state}
@@ -136,9 +137,9 @@ def main(argv=None) -> int:
 
     spec = args.config + (f":{args.variant}" if args.variant else "")
     config = load_config(spec)
-    model = depth.build_model(config, prior_mean=2.6)
+    model = depth_builders.build_model(config, prior_mean=2.6)
     t0 = time.perf_counter()
-    variables = jax.block_until_ready(depth.init_variables(model, config, 0))
+    variables = jax.block_until_ready(depth_builders.init_variables(model, config, 0))
     init_s = time.perf_counter() - t0
     params = sum(x.size for x in jax.tree.leaves(variables["params"]))
     record = {

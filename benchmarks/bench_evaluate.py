@@ -64,9 +64,9 @@ def random_weights(config_spec: str, overrides: list[str], out: Path) -> None:
     import jax
     import numpy as np
 
+    from gac_jax.builders.detect3d import anchor_layout, build_model, init_variables
     from gac_jax.config import apply_overrides, load_config
     from gac_jax.pretrained import save_converted
-    from gac_jax.trainers.detect3d import anchor_layout, build_model, init_variables
 
     config = load_config(str(REPO / config_spec))
     apply_overrides(config, overrides)
@@ -81,13 +81,13 @@ def interleaved_model_timing(workdir, config_spec, overrides, weights, dtypes, r
     import jax.numpy as jnp
     import numpy as np
 
+    from gac_jax.builders.detect3d import eval_transform, filter_options
     from gac_jax.data.loader import Loader
     from gac_jax.data.sources import open_object_source
     from gac_jax.evaluation.detection_model_eval import load_detector
     from gac_jax.evaluation.detector_evaluator import InputArrays
     from gac_jax.evaluation.model_mode import load_run_config
     from gac_jax.inference import make_predict_fn
-    from gac_jax.trainers.detect3d import eval_transform, filter_options
 
     config = load_run_config(workdir, config_spec, overrides)
     b = config.data.eval_batch_size

@@ -43,13 +43,14 @@ def run_case(config_spec: str, batch_size: int, steps: int) -> dict:
     from gac_jax import parallel
     from gac_jax.anchor_priors import AnchorPriors, make_detection_constants
     from gac_jax.anchors import generate_anchors
+    from gac_jax.builders import detect3d as builders
     from gac_jax.config import load_config
     from gac_jax.train_state import TrainState, learning_rate_schedule, make_optimizer
     from gac_jax.trainers import detect3d
 
     c = load_config(config_spec)
     c.data.batch_size = batch_size
-    layout = detect3d.anchor_layout(c)
+    layout = builders.anchor_layout(c)
     anchors = generate_anchors(layout)
     k, a = len(c.data.classes), layout.anchors_per_cell
     sizes = np.sqrt(np.prod(layout.bin_shapes(), axis=1))
@@ -72,16 +73,16 @@ def run_case(config_spec: str, batch_size: int, steps: int) -> dict:
         min_std=1e-3,
     )
     constants = make_detection_constants(anchors, priors)
-    model = detect3d.build_model(c, a)
+    model = builders.build_model(c, a)
     mesh = parallel.make_mesh()
     tx = make_optimizer(learning_rate_schedule(1e-4, 1e-5, 1000), 0.1)
     t0 = time.perf_counter()
-    v = detect3d.init_variables(model, c, 0)
+    v = builders.init_variables(model, c, 0)
     init_s = time.perf_counter() - t0
     rep = parallel.replicated(mesh)
     state = jax.device_put(TrainState.create(v["params"], v["batch_stats"], tx, 0), rep)
     step = detect3d.make_train_step(
-        model, tx, constants, detect3d.loss_config(c), c, mesh, jax.tree.map(lambda _: rep, state)
+        model, tx, constants, builders.loss_config(c), c, mesh, jax.tree.map(lambda _: rep, state)
     )
     rng = np.random.default_rng(0)
     h, w, m = c.data.height, c.data.width, c.data.max_objects

@@ -157,12 +157,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def predict(args: argparse.Namespace, threads: int) -> Path:
     """Runs the command (``threads``: XLA CPU threads in effect); returns the output folder."""
+    from gac_jax.builders.detect3d import eval_transform, filter_options
     from gac_jax.data.files import KittiFormatError
     from gac_jax.evaluation.detection_model_eval import load_detector, postprocess_config
     from gac_jax.evaluation.detection_pictures import save_pictures
     from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
     from gac_jax.evaluation.model_mode import load_run_config
-    from gac_jax.trainers.detect3d import eval_transform, filter_options
 
     workdir = Path(args.workdir)
     if not workdir.is_dir():

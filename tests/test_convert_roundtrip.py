@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from gac_jax import convert
+from gac_jax.builders.detect3d import eval_transform, filter_options
 from gac_jax.data.kitti import read_label, read_split
 from gac_jax.data.loader import collate
 from gac_jax.data.sources import open_object_source
@@ -33,7 +34,6 @@ from gac_jax.evaluation.detector_evaluator import InputArrays, ground_truth
 from gac_jax.evaluation.kitti_object import evaluate_detections
 from gac_jax.evaluation.model_mode import load_run_config
 from gac_jax.inference import make_predict_fn, postprocess
-from gac_jax.trainers.detect3d import eval_transform, filter_options
 
 torch = pytest.importorskip("torch")
 from torch_reference_models import GroundAwareYolo3D, randomize_  # noqa: E402

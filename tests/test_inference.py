@@ -24,6 +24,7 @@ from gac_jax import geometry
 from gac_jax.anchor_priors import DetectionConstants
 from gac_jax.anchors import box_iou_np, generate_anchors
 from gac_jax.box_coding import encode_np
+from gac_jax.builders.detect3d import anchor_layout, eval_transform
 from gac_jax.config import load_config
 from gac_jax.data import transforms as tf
 from gac_jax.data.kitti import KittiObjectLayout, write_label
@@ -33,7 +34,6 @@ from gac_jax.evaluation import cli
 from gac_jax.evaluation.detector_evaluator import InputArrays
 from gac_jax.hill_climbing import optimize_rotation_y
 from gac_jax.inference import PostprocessConfig, candidates_to_objects, make_predict_fn, postprocess
-from gac_jax.trainers.detect3d import anchor_layout, eval_transform
 
 REPO = Path(__file__).resolve().parents[1]
 CLASSES = ("Car", "Pedestrian", "Cyclist")

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from gac_jax import geometry, parallel
+from gac_jax.builders import depth as depth_builders
 from gac_jax.checkpointing import Checkpoints
 from gac_jax.config import apply_overrides, load_config
 from gac_jax.data.files import read_depth_png
@@ -89,12 +90,14 @@ def test_train_step_compiles_once_and_learns_a_fixed_batch(depth_root, tmp_path)
     """The trainer's step (its optimizer, its prior, its batch layout) on a fixed planar batch."""
     config = tiny_config(depth_root)
     mesh = parallel.make_mesh(jax.devices()[:1])
-    source = depth.train_source(config, depth_root)
+    source = depth_builders.train_source(config, depth_root)
     prior = depth.load_or_compute_prior_mean(config, source, tmp_path)
-    model = depth.build_model(config, prior)
+    model = depth_builders.build_model(config, prior)
     _, tx = depth.optimizer(config, total_steps=STEPS, steps_per_epoch=1)
-    state, sharding = create_train_state(depth.init_variables(model, config, 0), tx, 0, mesh)
-    step = depth.make_train_step(model, tx, depth.loss_options(config), mesh, sharding)
+    state, sharding = create_train_state(
+        depth_builders.init_variables(model, config, 0), tx, 0, mesh
+    )
+    step = depth.make_train_step(model, tx, depth_builders.loss_options(config), mesh, sharding)
     batch = parallel.to_global(planar_batch(2), mesh)
     losses = []
     for _ in range(12):
@@ -110,7 +113,9 @@ def test_run_writes_prior_checkpoints_metrics_and_evaluation(trained, depth_root
     workdir, result = trained
     with Checkpoints(workdir) as ckpts:
         assert ckpts.all_steps() == [2, 4]
-        assert ckpts.restore_meta(4)["prior_mean"] == pytest.approx(depth.read_prior_mean(workdir))
+        assert ckpts.restore_meta(4)["prior_mean"] == pytest.approx(
+            depth_builders.read_prior_mean(workdir)
+        )
     # prior_mean: mean natural log of the valid GT depths of both views (float64 reference).
     source = KittiDepthSource(depth_root, "train", (2, 3))
     logs = np.concatenate(
@@ -119,7 +124,7 @@ def test_run_writes_prior_checkpoints_metrics_and_evaluation(trained, depth_root
             for d in (read_depth_png(source.layout.groundtruth("train", f)) for f in source.frames)
         ]
     )
-    assert depth.read_prior_mean(workdir) == pytest.approx(logs.mean(), rel=1e-12)
+    assert depth_builders.read_prior_mean(workdir) == pytest.approx(logs.mean(), rel=1e-12)
     records = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
     train = [r for r in records if r["kind"] == "train"]
     assert [r["step"] for r in train] == [1, 2, 3, 4]
@@ -189,7 +194,7 @@ def test_evaluate_cli_runs_the_trained_model_on_the_real_frame(trained, depth_ro
     # The PNGs decode to the network's prediction (to 1/256 m) at the original size.
     config, model, variables, _ = restore_depth_model(workdir)
     sample = dict(KittiDepthSource(depth_root, "train", (2,))[0])
-    sample = depth.eval_transform(config)(sample)
+    sample = depth_builders.eval_transform(config)(sample)
     log_depth = jax.jit(lambda v, x, P: model.apply(v, x, P, train=False))(
         variables, sample["image"][None], sample["P2"][None]
     )
@@ -211,15 +216,17 @@ def test_configs_build_the_paper_base_and_reference_models(depth_root):
     assert (paper.data.height, paper.data.width, paper.data.batch_size) == (352, 1216, 8)
     assert (paper.train.learning_rate, paper.train.final_learning_rate) == (1e-4, 1e-5)
     assert (paper.train.num_epochs, paper.train.clip_norm) == (8, 1.0)
-    model = depth.build_model(paper, 2.5)
+    model = depth_builders.build_model(paper, 2.5)
     assert (model.depth, model.width, model.use_gac, model.decoder_conv) == (34, 64, True, "plain")
-    opts = depth.loss_options(paper)
+    opts = depth_builders.loss_options(paper)
     assert (opts["si_lambda"], opts["smooth_weight"], opts["edge_sharpness"]) == (0.3, 0.3, 1.0)
-    assert not depth.build_model(load_config(f"{REPO}/configs/depth_kitti.py:base"), 2.5).use_gac
+    assert not depth_builders.build_model(
+        load_config(f"{REPO}/configs/depth_kitti.py:base"), 2.5
+    ).use_gac
     ref = load_config(str(REPO / "configs" / "depth_kitti.py:reference"))
-    model = depth.build_model(ref, 2.5)
+    model = depth_builders.build_model(ref, 2.5)
     assert (model.decoder_conv, model.intrinsics_mode) == ("deformable", "reference")
-    assert depth.loss_options(ref)["smooth_weight"] == 0.0 and not ref.data.photometric
+    assert depth_builders.loss_options(ref)["smooth_weight"] == 0.0 and not ref.data.photometric
     default = load_config(str(REPO / "configs" / "depth_default.py"))
     assert default.data.source == "synthetic" and default.data.train_views == "both"
     with pytest.raises(ValueError, match="unknown variants"):
@@ -227,7 +234,7 @@ def test_configs_build_the_paper_base_and_reference_models(depth_root):
 
     # 'random' views: one item per frame and epoch, on the paper's 352x1216 crop.
     paper.data.root, paper.data.num_workers = str(depth_root), 0
-    source = depth.train_source(paper, depth_root)
+    source = depth_builders.train_source(paper, depth_root)
     mesh = parallel.make_mesh(jax.devices()[:1])
     loader = depth.make_train_loader(paper, source, per_process_batch=1, mesh=mesh)
     assert len(source) == 2 and loader.steps_per_epoch == 1

@@ -82,6 +82,7 @@ def test_train_step_compiles_once_and_two_devices_match_one(kitti_object_root, t
         from gac_jax import parallel
         from gac_jax.config import apply_overrides, load_config
         from gac_jax.trainers import detect3d as D
+        from gac_jax.builders import detect3d as B
         import optax
         from gac_jax.train_state import TrainState
         from gac_jax.anchor_priors import load_or_compute_priors, make_detection_constants
@@ -93,25 +94,25 @@ def test_train_step_compiles_once_and_two_devices_match_one(kitti_object_root, t
         assert len(jax.devices()) == 2
         c = load_config({str(REPO / "configs" / "detect3d_default.py:tiny")!r})
         apply_overrides(c, {tiny_overrides(kitti_object_root)!r} + ["data.batch_size=4"])
-        layout = D.anchor_layout(c)
-        priors = D.compute_priors(c, Path(c.data.root), layout, Path({str(tmp_path)!r}))
+        layout = B.anchor_layout(c)
+        priors = B.compute_priors(c, Path(c.data.root), layout, Path({str(tmp_path)!r}))
         constants = make_detection_constants(generate_anchors(layout), priors)
-        model = D.build_model(c, layout.anchors_per_cell)
+        model = B.build_model(c, layout.anchors_per_cell)
         # SGD: the update is linear in the gradient, so parameters compare tightly (Adam's
         # m / sqrt(v) turns float-noise gradients of unused weights into full-size steps).
         tx = optax.sgd(1e-2)
         source = open_object_source(c.data.root, "labeled")
-        loader = Loader(source, D.train_transform(c), DetectionArrays(("Car",), 32, True),
+        loader = Loader(source, B.train_transform(c), DetectionArrays(("Car",), 32, True),
                         batch_size=4, seed=0)
         batches = [loader.load_batch(s) for s in range(2)]
-        v = jax.tree.map(np.asarray, D.init_variables(model, c, 0))  # host copy: steps donate
+        v = jax.tree.map(np.asarray, B.init_variables(model, c, 0))  # host copy: steps donate
         results = []
         for devices in (jax.devices()[:1], jax.devices()):
             mesh = parallel.make_mesh(devices)
             rep = parallel.replicated(mesh)
             state = jax.device_put(TrainState.create(v["params"], v["batch_stats"], tx, 0), rep)
             shard = jax.tree.map(lambda _: rep, state)
-            step = D.make_train_step(model, tx, constants, D.loss_config(c), c, mesh, shard)
+            step = D.make_train_step(model, tx, constants, B.loss_config(c), c, mesh, shard)
             losses = []
             for b in batches:
                 state, m = step(state, parallel.to_global(b, mesh))

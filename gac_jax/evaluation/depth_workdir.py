@@ -55,21 +55,21 @@ def restore_depth_model(workdir: str | Path, step: int | None = None):
     The train state is restored into a template built with ``jax.eval_shape`` (nothing is
     initialised); only ``params`` and ``batch_stats`` are returned, as host arrays.
     """
-    from gac_jax.trainers import depth as trainer
+    from gac_jax.builders import depth as builders
 
     workdir = Path(workdir)
     config = load_workdir_config(workdir)
     try:
-        prior_mean = trainer.read_prior_mean(workdir)
+        prior_mean = builders.read_prior_mean(workdir)
     except FileNotFoundError as e:
-        raise KittiFormatError(workdir / trainer.PRIOR_FILE, str(e)) from None
-    model = trainer.build_model(config, prior_mean)
+        raise KittiFormatError(workdir / builders.PRIOR_FILE, str(e)) from None
+    model = builders.build_model(config, prior_mean)
     # The optimizer only shapes the template's opt_state: any schedule of the same kind.
     tx = make_optimizer(
         learning_rate_schedule(1.0, 1.0, 1), config.train.clip_norm, config.train.weight_decay
     )
     abstract = jax.eval_shape(
-        lambda: TrainState.create(**trainer.init_variables(model, config, 0), tx=tx, seed=0)
+        lambda: TrainState.create(**builders.init_variables(model, config, 0), tx=tx, seed=0)
     )
     with Checkpoints(workdir) as checkpoints:
         available = checkpoints.all_steps()
@@ -87,14 +87,14 @@ def restore_depth_model(workdir: str | Path, step: int | None = None):
 
 
 def _data_source(config, data: str | None, split: str | None):
-    from gac_jax.trainers import depth as trainer
+    from gac_jax.builders import depth as builders
 
     if data is not None:
         if not Path(data).exists():
             raise KittiFormatError(data, "data folder not found")
         cameras = tuple(config.data.val_cameras) if config is not None else (2, 3)
-        return trainer.open_eval_data(Path(data), split or "val", cameras)
-    return trainer.eval_source(config, trainer.depth_root(config.data), split)
+        return builders.open_eval_data(Path(data), split or "val", cameras)
+    return builders.eval_source(config, builders.depth_root(config.data), split)
 
 
 def _tag(source, split: str | None) -> str:
@@ -113,12 +113,12 @@ def evaluate_workdir(
     out: str | Path | None = None,
 ) -> dict:
     """Runs a trained depth model over a split; returns the evaluator's result dict."""
-    from gac_jax.trainers import depth as trainer
+    from gac_jax.builders import depth as builders
 
     config, model, variables, step = restore_depth_model(workdir, step)
     source = _data_source(config, data, split)
     out = Path(out) if out else Path(workdir) / "eval" / f"step_{step}_{_tag(source, split)}"
-    evaluator = trainer.make_evaluator(config, source)
+    evaluator = builders.make_evaluator(config, source)
     result = evaluator.evaluate(NetworkPredictor(model, variables), out / "depth", out / "pictures")
     result["step"] = step
     with atomic_write(out / "metrics.json") as f:

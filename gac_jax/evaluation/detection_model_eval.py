@@ -40,6 +40,15 @@ from gac_jax.anchor_priors import (
     make_detection_constants,
 )
 from gac_jax.anchors import generate_anchors
+from gac_jax.builders.datasets import prepare_dataset
+from gac_jax.builders.detect3d import (
+    anchor_layout,
+    build_model,
+    compute_priors,
+    eval_transform,
+    filter_options,
+    sign_axis,
+)
 from gac_jax.checkpointing import Checkpoints
 from gac_jax.data.files import KittiFormatError, atomic_write
 from gac_jax.data.sources import open_object_source
@@ -49,15 +58,6 @@ from gac_jax.evaluation.kitti_object import format_table
 from gac_jax.evaluation.model_mode import limit_cpu_threads, load_run_config, xla_thread_count
 from gac_jax.inference import PostprocessConfig
 from gac_jax.models.detector import Detector
-from gac_jax.trainers.common import prepare_dataset
-from gac_jax.trainers.detect3d import (
-    anchor_layout,
-    build_model,
-    compute_priors,
-    eval_transform,
-    filter_options,
-    sign_axis,
-)
 
 PRIORS_FILE = "anchor_priors.npz"
 

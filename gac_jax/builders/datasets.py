@@ -1,0 +1,61 @@
+"""Where a config's data lives: the embedded dataset cache and ``prepare_dataset``."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+import ml_collections
+
+from gac_jax.data.files import KittiFormatError
+
+
+def default_cache_dir() -> Path:
+    """``$GAC_JAX_CACHE`` or ``~/.cache/gac_jax``: where the embedded dataset is generated."""
+    return Path(os.environ.get("GAC_JAX_CACHE", Path.home() / ".cache" / "gac_jax"))
+
+
+def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
+    """Folder of the embedded dataset described by ``cfg`` (``data.synthetic``)."""
+    if cfg.get("root"):
+        return Path(cfg.root)
+    s = cfg.synthetic
+    name = f"synthetic_n{s.num_frames}_s{s.seed}_{s.height}x{s.width}_val{s.val_fraction:g}"
+    return default_cache_dir() / name
+
+
+def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
+    """Returns the dataset root, generating the embedded dataset on first use.
+
+    ``cfg`` is the config's ``data`` block: ``source`` is ``'synthetic'`` (the
+    embedded generator; ``root`` optional) or ``'kitti'`` (``root`` = a KITTI
+    object folder or a prepared TFDS dataset). In a multi-process run, process
+    0 generates and the others wait for it.
+    """
+    if cfg.source == "kitti":
+        if not cfg.get("root"):
+            raise KittiFormatError("<config>", "data.root must point at a KITTI folder")
+        root = Path(cfg.root)
+        if not root.exists():
+            raise KittiFormatError(root, "dataset folder not found (data.root)")
+        return root
+    if cfg.source != "synthetic":
+        raise ValueError(f"data.source must be 'synthetic' or 'kitti', got {cfg.source!r}")
+    root = synthetic_dataset_dir(cfg)
+    if jax.process_index() == 0:
+        from gac_jax.data.synthetic import generate_dataset
+
+        s = cfg.synthetic
+        generate_dataset(
+            root,
+            num_frames=s.num_frames,
+            seed=s.seed,
+            height=s.height,
+            width=s.width,
+            val_fraction=s.val_fraction,
+        )
+    from gac_jax import multiprocess
+
+    multiprocess.barrier("dataset_ready")  # the others wait (with a timeout) for process 0
+    return root
