@@ -111,7 +111,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.eval.nms_iou = 0.5
     c.eval.class_agnostic_nms = True
     c.eval.hill_climbing = True
-    c.eval.top_k = 100
+    # Candidates per image before NMS (the reference keeps every anchor above the threshold).
+    # A cap bounds host NMS memory (an N x N IoU matrix) with untrained weights; evaluation
+    # reports how many frames exceeded it (`candidates ... frames_over_cap`, 0 expected).
+    # None = every anchor (exact reference semantics, all 46 080 candidates leave the device).
+    c.eval.top_k = 4096
     c.eval.num_pictures = 4  # val frames drawn at each evaluation
 
     if arg == "multiclass":

@@ -22,7 +22,9 @@ flags; a disagreement with the file is an error naming the keys. ``--offset-form
 property of how the weights were *trained* (it changes no weight) and defaults to
 ``reference_v1``, the release-1.0 GAC base offset the released weights were trained with
 (reference_impl.md §3.4 step 4, Appendix B); it is recorded in the meta, and the config's
-``model.gac.offset_formula`` is only compared against it (a note is printed when they differ).
+``model.gac.offset_formula`` is only compared against it (a note is printed when they give
+different offsets: ``paper`` and ``reference`` are the same formula, only ``reference_v1``
+differs).
 
 Every tensor must be used exactly once (BatchNorm counters and the reference's loss-weight
 buffers are deliberately ignored, torchvision's ``fc`` too) and every Flax leaf filled; else
@@ -438,6 +440,27 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+# 'paper' and 'reference' are one formula written two ways (h (v - cy) / (2 EL - h)); only
+# release 1.0's 'reference_v1' (missing parentheses) gives other offsets.
+_FORMULA_VALUES = {"paper": "paper", "reference": "paper", "reference_v1": "reference_v1"}
+
+
+def offset_formula_note(config_name, configured: str | None, trained: str) -> str | None:
+    """The note printed when the config would run the weights with other GAC offsets.
+
+    ``configured``: the config's ``model.gac.offset_formula`` (None: no config / not set);
+    ``trained``: the formula the weights are recorded as trained with. None when both give
+    the same offsets ('paper' and 'reference' are algebraically identical).
+    """
+    if configured is None or _FORMULA_VALUES.get(configured) == _FORMULA_VALUES[trained]:
+        return None
+    return (
+        f"note: {config_name} sets model.gac.offset_formula={configured!r}, but these "
+        f"weights are recorded as trained with {trained!r}, whose GAC offsets differ; run them "
+        f"with model.gac.offset_formula={trained}"
+    )
+
+
 def run(args: argparse.Namespace) -> Path:
     """Runs a parsed command; returns the checkpoint folder. Raises WeightsError."""
     state_dict = read_torch_state_dict(args.input)
@@ -463,13 +486,9 @@ def run(args: argparse.Namespace) -> Path:
         model = gac_model_settings(state_dict, config, flags)
         variables = convert_gac(state_dict, model)
         configured = config_model_settings(config).get("offset_formula") if config else None
-        if configured is not None and configured != model["offset_formula"]:
-            print(
-                f"note: {args.config} sets model.gac.offset_formula={configured!r}, but these "
-                f"weights are recorded as trained with {model['offset_formula']!r}; run them "
-                f"with model.gac.offset_formula={model['offset_formula']}",
-                file=sys.stderr,
-            )
+        note = offset_formula_note(args.config, configured, model["offset_formula"])
+        if note:
+            print(note, file=sys.stderr)
         kind = "gac_detector"
     meta = _source_meta(args.input, kind, model)
     return save_converted(args.out_dir, variables, meta, overwrite=args.overwrite)

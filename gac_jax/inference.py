@@ -2,8 +2,11 @@
 
 Device side (:func:`make_predict_fn`, one ``jax.jit``): backbone + heads,
 decoding of every anchor with its best class (anchor priors compiled in as
-constants), the ground-plane anchor filter and invalid-prior mask, and a fixed
-``top_k`` of candidates per image (static shapes).
+constants), the ground-plane anchor filter and invalid-prior mask, and the
+``top_k`` best candidates per image (static shapes; ``None`` = every anchor). It
+also counts, per image, the filter-kept anchors above the score threshold
+(``num_candidates``): the reference keeps all of them, so a count above ``top_k``
+means the cap dropped some, and the evaluator reports how often that happened.
 
 Host side (:func:`postprocess`): score threshold, 2D clipping, NMS, optional
 hill-climbing of the observation angle, back-projection to 3D, and mapping of
@@ -60,7 +63,8 @@ def make_predict_fn(
     model,
     constants: DetectionConstants,
     *,
-    top_k: int = 100,
+    top_k: int | None = 4096,
+    score_threshold: float | None = None,
     filter_options: dict | None = None,
     use_ground_filter: bool = True,
 ) -> Callable:
@@ -69,17 +73,25 @@ def make_predict_fn(
     Args:
       model: a :class:`gac_jax.models.detector.Detector`.
       constants: anchors and priors (closed over: compiled-in constants).
-      top_k: candidates per image (static).
+      top_k: candidates per image (static); ``None`` or more than the anchor count:
+        every anchor (the reference's uncapped selection; ``K = N``).
+      score_threshold: the post-processing threshold, used only for the
+        ``num_candidates`` count (``None``: count every filter-kept anchor).
       filter_options: keyword options of :func:`gac_jax.anchor_filter.ground_filter_mask`.
 
     Returns:
       A jitted function of ``variables`` ({'params', 'batch_stats'}), ``images``
       (B, H, W, 3) float32 normalised and ``P2`` (B, 3, 4) giving a dict of
-      (B, top_k, ...) arrays: ``scores``, ``labels``, ``boxes`` (xyxy, input
-      pixels), ``center`` (u, v), ``depth`` (homogeneous), ``dims`` (h, w, l),
-      ``alpha``; padding candidates have score -1.
+      (B, K, ...) arrays, ``K = min(top_k, N)``, best score first: ``scores``,
+      ``labels``, ``boxes`` (xyxy, input pixels), ``center`` (u, v), ``depth``
+      (homogeneous), ``dims`` (h, w, l), ``alpha`` (padding candidates have score
+      -1); and ``num_candidates`` (B,) int32, the filter-kept anchors with score
+      above ``score_threshold`` (more than ``K``: the cap dropped some).
     """
     filter_options = dict(filter_options or {})
+    if top_k is not None and top_k < 1:
+        raise ValueError(f"top_k must be >= 1 or None (every anchor), got {top_k}")
+    threshold = -1.0 if score_threshold is None else float(score_threshold)
 
     @jax.jit
     def predict(variables, images, P2):
@@ -89,7 +101,8 @@ def make_predict_fn(
         if use_ground_filter:
             keep = keep & ground_mask_from_constants(constants, P2, **filter_options)
         scores = jnp.where(keep, decoded["scores"], -1.0)
-        k = min(top_k, scores.shape[1])
+        num_candidates = jnp.sum(keep & (decoded["scores"] > threshold), axis=1)
+        k = scores.shape[1] if top_k is None else min(top_k, scores.shape[1])
         top_scores, index = jax.lax.top_k(scores, k)
 
         def take(x):
@@ -98,6 +111,7 @@ def make_predict_fn(
 
         out = {key: take(decoded[key]) for key in CANDIDATE_KEYS if key != "scores"}
         out["scores"] = top_scores
+        out["num_candidates"] = num_candidates.astype(jnp.int32)
         return out
 
     return predict
@@ -115,13 +129,14 @@ def candidates_to_objects(
     """Post-processes one image's candidates into KITTI objects in original-image pixels.
 
     Args:
-      candidates: one image's slice of :func:`make_predict_fn`'s output (numpy).
+      candidates: one image's slice of :func:`make_predict_fn`'s output (numpy;
+        only :data:`CANDIDATE_KEYS` are read).
       P2: (3, 4) projection of the network input (after crop/resize).
       image_transform: (3, 3) affine original -> input pixels.
       input_size: (H, W) of the network input.
       original_size: (H0, W0) of the original image.
     """
-    c = {k: np.asarray(v, np.float64) for k, v in candidates.items()}
+    c = {k: np.asarray(candidates[k], np.float64) for k in CANDIDATE_KEYS}
     sel = c["scores"] > config.score_threshold
     c = {k: v[sel] for k, v in c.items()}
     h, w = input_size

@@ -281,6 +281,34 @@ def get_config(arg=None):
 """
 
 
+@pytest.mark.parametrize(
+    "configured, trained, noted",
+    [
+        ("paper", "reference", False),
+        ("reference", "paper", False),
+        ("paper", "paper", False),
+        ("reference_v1", "reference_v1", False),
+        (None, "reference_v1", False),
+        ("paper", "reference_v1", True),
+        ("reference", "reference_v1", True),
+        ("reference_v1", "paper", True),
+        ("reference_v1", "reference", True),
+    ],
+)
+def test_offset_formula_note_only_when_offsets_differ(configured, trained, noted):
+    """'paper' and 'reference' give the same offsets (checked here); only 'reference_v1' differs."""
+    from gac_jax.models.ground_aware_conv import OFFSET_FORMULAS, base_offset
+
+    P = jnp.asarray(P2_batch())
+    rows = {f: np.asarray(base_offset(16, P, 4, offset_formula=f)) for f in OFFSET_FORMULAS}
+    np.testing.assert_allclose(rows["paper"], rows["reference"], rtol=1e-6, atol=1e-6)
+    assert np.abs(rows["paper"] - rows["reference_v1"]).max() > 0.1
+    note = convert.offset_formula_note("cfg.py", configured, trained)
+    assert (note is not None) == noted
+    if noted:
+        assert f"model.gac.offset_formula={trained}" in note and "cfg.py" in note
+
+
 def test_gac_cli_with_a_config_round_trip(tmp_path, capsys):
     images, P2 = images_nchw((2, 3, 64, 256), 11), P2_batch()
     tmodel = GroundAwareYolo3D(depth=18, width=8, num_classes=2, num_anchors=4, cls=16, reg=32)
@@ -319,6 +347,10 @@ def test_gac_cli_with_a_config_round_trip(tmp_path, capsys):
     # default formula (release 1.0) differs from the config's: converted, with a note
     status, _, err = run_cli(["gac", pth, tmp_path / "v1", "--config", cfg], capsys)
     assert status == 0 and "note:" in err and "offset_formula=reference_v1" in err
+    # 'reference' is the config's 'paper' formula written another way: no note
+    argv = ["gac", pth, tmp_path / "ref", "--config", cfg, "--offset-formula", "reference"]
+    status, _, err = run_cli(argv, capsys)
+    assert status == 0 and "note" not in err, err
     assert (
         pretrained.read_converted_meta(tmp_path / "v1")["model"]["offset_formula"] == "reference_v1"
     )

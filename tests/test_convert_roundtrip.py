@@ -180,6 +180,7 @@ def test_converted_reference_checkpoint_through_evaluate_py(tmp_path):
     # The metrics: the offline mode's JSON schema and values (the offline mode scores every
     # KITTI class, from the rounded files), and PyTorch's detections score the same AP.
     metrics = json.loads(ap_json.read_text())
+    assert set(metrics.pop("_meta")["min_overlap"]) == set(classes)
     assert set(metrics) == {"ap11", "ap40"}
     for ap in metrics.values():
         assert set(ap) == set(classes)
@@ -202,6 +203,7 @@ def test_converted_reference_checkpoint_through_evaluate_py(tmp_path):
     ]
     assert cli.main([str(a) for a in offline]) == 0
     from_files = json.loads(offline_json.read_text())
+    from_files.pop("_meta")
     assert set(from_files["ap40"]) == {"Car", "Pedestrian", "Cyclist"}
     from_files = {ap: {c: from_files[ap][c] for c in classes} for ap in from_files}
     assert flat(from_files) == pytest.approx(flat(metrics), abs=1e-4)

@@ -57,13 +57,20 @@ def test_model_mode_reproduces_the_trainer_evaluation(workdir_copy, tmp_path, ca
     assert len(expected) == 13 and sum(t.count("\n") for t in expected.values()) > 13
     assert result_texts(mine / "data") == expected
     reference = json.loads((trainer / "metrics.json").read_text())["metrics"]
-    assert json.loads(out_json.read_text()) == reference  # the offline mode's schema and values
+    written = json.loads(out_json.read_text())
+    assert set(written.pop("_meta")["min_overlap"]) == set(reference["ap40"])
+    assert written == reference  # the offline mode's schema and values
     for needle in ("KITTI AP|R40", "frames/s", "model", "post-processing", "I/O", "compile"):
         assert needle in out
     summary = json.loads((mine / "metrics.json").read_text())
     assert summary["predicted"] == 13 and summary["resumed"] == 0
     assert summary["speed"]["frames_per_s"] > 0 and summary["compile_s"] > 0
     assert summary["threads"] == len(os.sched_getaffinity(0))
+    # Tiny config: top_k 20 and score threshold 0, so every frame overflows the cap, and says so.
+    cap = summary["candidates"]
+    assert cap["top_k"] == cap["kept_per_frame"] == 20 and cap["frames"] == 13
+    assert cap["frames_over_cap"] == 13 and cap["max_candidates"] > 20
+    assert "13 of 13 frames had more anchors above the score threshold" in out
     names = sorted(p.name for p in (mine / "pictures").glob("*.png"))
     assert names == ["000000.png", "000001.png", "000002.png", "grid.png"]
     # Pictures written by the trainer at its evaluation (config.eval.num_pictures = 2).

@@ -62,7 +62,25 @@ def test_detect3d_json_schema_and_values(detection_dirs, tmp_path, capsys):
     assert code == 0, err
     assert "AP|R40" in out and "13 frames" in out
     data = json.loads(out_json.read_text())
-    assert set(data) == {"ap11", "ap40"}
+    assert set(data) == {"ap11", "ap40", "_meta"}
+    # Which overlaps each entry used: the loose setting keeps bbox/AOS at the strict value.
+    car = {"bbox": 0.7, "aos": 0.7}
+    small = {"bbox": 0.5, "aos": 0.5}
+    assert data.pop("_meta") == {
+        "min_overlap": {
+            "Car": {
+                "0.70": {"setting": "strict", **car, "bev": 0.7, "3d": 0.7},
+                "0.50": {"setting": "loose", **car, "bev": 0.5, "3d": 0.5},
+            },
+            **{
+                cls: {
+                    "0.50": {"setting": "strict", **small, "bev": 0.5, "3d": 0.5},
+                    "0.25": {"setting": "loose", **small, "bev": 0.25, "3d": 0.25},
+                }
+                for cls in ("Pedestrian", "Cyclist")
+            },
+        }
+    }
     for ap in data.values():
         assert set(ap) == {"Car", "Pedestrian", "Cyclist"}
         assert set(ap["Car"]) == {"0.70", "0.50"}
@@ -103,7 +121,8 @@ def test_detect3d_split_file_and_classes(detection_dirs, tmp_path, capsys):
         capsys,
     )
     assert code == 0 and "5 frames" in out
-    assert set(json.loads(out_json.read_text())["ap40"]) == {"Car"}
+    data = json.loads(out_json.read_text())
+    assert set(data["ap40"]) == set(data["_meta"]["min_overlap"]) == {"Car"}
 
 
 def _copy_results(results, tmp_path):

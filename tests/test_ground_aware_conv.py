@@ -286,6 +286,29 @@ def test_gac_matches_numpy_reference_with_torch_weights(gac_init):
     assert np.abs(expected - x.transpose(0, 3, 1, 2)).max() > 0.1
 
 
+def test_gac_float64_run_matches_numpy_reference_to_1e9(gac_init):
+    """Offsets, sampling rows and features stay float64 in a float64 module (no float32 step)."""
+    _, variables = gac_init
+    sd = _torch_style_gac(6)
+    template = {"params": {"head": {"gac": variables["params"]}}}
+    conv = naming.convert_state_dict(
+        {GAC_PREFIX + k: v for k, v in sd.items()}, naming.HEAD_RULES, template
+    )
+    x = _features(7).astype(np.float64) + 1e-3 * np.random.default_rng(8).random((B, H, W, C))
+    with jax.enable_x64(True):
+        module = GroundAwareConv(
+            stride=STRIDE, offset_formula="reference", dtype=jnp.float64, param_dtype=jnp.float64
+        )
+        params = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), conv.variables["params"])
+        out = module.apply({"params": params["head"]["gac"]}, jnp.asarray(x), P_BATCH)
+        assert {str(v.dtype) for v in out.values()} == {"float64"}
+        got = np.asarray(out["features"]).transpose(0, 3, 1, 2)
+    sd64 = {k: np.asarray(v, np.float64) for k, v in sd.items()}
+    expected = np_look_ground(x.transpose(0, 3, 1, 2), P_BATCH, sd64, STRIDE)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+    assert np.abs(expected - x.transpose(0, 3, 1, 2)).max() > 0.1
+
+
 def test_gac_offset_gradient_is_scaled_by_0_05(gac_init):
     _, variables = gac_init
     params = {**variables["params"], "alpha": jnp.array([0.5])}

@@ -195,9 +195,13 @@ class CropBottomTo:
 class Resize:
     """Resizes to ``height`` x ``width`` (``width=None``: ``round(W * height / H)``, keeps aspect).
 
-    The image uses ``cv2.resize`` with ``interpolation``; a depth map is
-    resampled with :func:`warp_depth` (``depth_mode``), which keeps sparse
-    validity and never interpolates depth values.
+    The image is cast to float32 first and resized in float with ``cv2.resize``
+    (``interpolation``), as the reference does (``ConvertToFloat`` before its
+    ``Resize``): the output is float32 0-255 values, not re-quantised to uint8
+    (a uint8 resize rounds every pixel, up to 0.5 grey levels, and cv2's uint8
+    path uses 11-bit fixed-point weights). A depth map is resampled with
+    :func:`warp_depth` (``depth_mode``), which keeps sparse validity and never
+    interpolates depth values.
     """
 
     height: int
@@ -209,7 +213,8 @@ class Resize:
         h, w = sample["image"].shape[:2]
         new_w = self.width if self.width is not None else int(round(w * self.height / h))
         A = resize_affine((h, w), (self.height, new_w))
-        image = cv2.resize(sample["image"], (new_w, self.height), interpolation=self.interpolation)
+        image = np.asarray(sample["image"], np.float32)
+        image = cv2.resize(image, (new_w, self.height), interpolation=self.interpolation)
         depth = None
         if "depth" in sample:
             depth = warp_depth(sample["depth"], A, (self.height, new_w), self.depth_mode)

@@ -26,7 +26,12 @@ from pathlib import Path
 from gac_jax.data.files import KittiFormatError, atomic_write, read_depth_png
 from gac_jax.data.kitti import KittiObjects, read_label, read_split
 from gac_jax.evaluation.depth_metrics import DepthMetricAccumulator, format_depth_table
-from gac_jax.evaluation.kitti_object import CLASSES, evaluate_detections, format_table
+from gac_jax.evaluation.kitti_object import (
+    CLASSES,
+    evaluate_detections,
+    format_table,
+    overlap_meta,
+)
 from gac_jax.evaluation.model_mode import add_model_mode_arguments, reject_model_mode_arguments
 
 EXIT_INVALID_INPUT = 2
@@ -213,6 +218,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         result = runners[args.task](args, parser)
         if args.json:
+            if args.task == "detect3d":  # which overlap each (strict/loose) entry used
+                result = {**result, "_meta": {"min_overlap": overlap_meta(result)}}
             _write_json(args.json, result)
     except KittiFormatError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -274,6 +274,18 @@ def format_timing(summary: dict[str, float], compile_s: float | None, threads: i
     return "\n".join(lines) + "\n"
 
 
+def format_candidates(summary: dict) -> str:
+    """One line on the candidate cap (:meth:`DetectionEvaluator.candidate_summary`)."""
+    if not summary.get("frames"):
+        return ""
+    cap = "every anchor" if summary["top_k"] is None else f"top_k {summary['top_k']}"
+    return (
+        f"candidates ({cap}, {summary['kept_per_frame']} per frame): "
+        f"{summary['frames_over_cap']} of {summary['frames']} frames had more anchors above the "
+        f"score threshold, lost before NMS (max {summary['max_candidates']} in one frame)\n"
+    )
+
+
 def evaluate_detector_workdir(
     workdir: str | os.PathLike,
     *,
@@ -293,7 +305,8 @@ def evaluate_detector_workdir(
 
     Returns:
       ``{'metrics': <offline-mode result dict>, 'timings', 'speed', 'compile_s',
-      'num_frames', 'predicted', 'resumed', 'result_dir', 'weights', 'threads'}``.
+      'num_frames', 'candidates' (the candidate-cap counter), 'predicted', 'resumed',
+      'result_dir', 'weights', 'threads'}``.
     """
     threads = limit_cpu_threads(threads)
     workdir = Path(workdir)
@@ -335,7 +348,8 @@ def evaluate_detector_workdir(
     speed = timing_summary(result["timings"], evaluator.batch_timings)
     threads = xla_thread_count() or threads  # the compute threads XLA actually started
     print(format_table(result["metrics"]), end="")
-    print(format_timing(speed, compile_s, threads), end="", flush=True)
+    print(format_timing(speed, compile_s, threads), end="")
+    print(format_candidates(result["candidates"]), end="", flush=True)
     pictures = save_evaluation_pictures(
         source, result_dir, save_images, tuple(config.data.classes), out / "pictures"
     )
@@ -347,6 +361,7 @@ def evaluate_detector_workdir(
         "speed": speed,
         "compile_s": compile_s,
         "num_frames": result["num_frames"],
+        "candidates": result["candidates"],
         "predicted": int(result["timings"]["num_frames"]),
         "resumed": resumed,
         "result_dir": str(result_dir),

@@ -61,7 +61,9 @@ class DetectionEvaluator:
       class_names: class order of the model.
       postprocess_config: host post-processing.
       batch_size: images per predict call.
-      top_k: candidates per image from the device.
+      top_k: candidates per image from the device (``None``: every anchor). Frames
+        with more filter-kept anchors above the score threshold than that are
+        counted (:meth:`candidate_summary`); the reference keeps them all.
       filter_options: ground filter options (as in training).
       use_ground_filter: apply the ground-plane anchor filter.
       worker_count: loader worker processes.
@@ -77,7 +79,7 @@ class DetectionEvaluator:
         postprocess_config: PostprocessConfig,
         *,
         batch_size: int = 8,
-        top_k: int = 100,
+        top_k: int | None = 4096,
         filter_options: dict | None = None,
         use_ground_filter: bool = True,
         worker_count: int = 0,
@@ -85,12 +87,16 @@ class DetectionEvaluator:
         self.source = source
         self.class_names = tuple(class_names)
         self.batch_timings: list[dict[str, float]] = []
+        self.top_k = top_k
+        self.candidate_counts: dict[str, int] = {}  # frame id -> anchors above threshold
+        self.num_kept = 0  # candidates the device returns per image (min(top_k, anchors))
         self.postprocess_config = postprocess_config
         self.batch_size = batch_size
         self.predict = make_predict_fn(
             model,
             constants,
             top_k=top_k,
+            score_threshold=postprocess_config.score_threshold,
             filter_options=filter_options,
             use_ground_filter=use_ground_filter,
         )
@@ -148,6 +154,7 @@ class DetectionEvaluator:
                     done[fid] = read_label(path, with_score=True)
         timings = {"model_s": 0.0, "postprocess_s": 0.0, "io_s": 0.0}
         self.batch_timings = []
+        self.candidate_counts = {}
         results = dict(done)
         steps = self.loader.steps_per_epoch
         for step in range(steps if max_batches is None else min(steps, max_batches)):
@@ -169,6 +176,9 @@ class DetectionEvaluator:
             candidates = self.predict(variables, batch["image"], batch["P2"])
             candidates = {k: np.asarray(v)[:n] for k, v in candidates.items()}  # drop padding
             t1 = time.perf_counter()
+            self.num_kept = int(candidates["scores"].shape[1])
+            for fid, count in zip(batch["frame_id"][:n], candidates["num_candidates"], strict=True):
+                self.candidate_counts[str(fid)] = int(count)
             objects = postprocess(candidates, batch, self.class_names, self.postprocess_config)
             t2 = time.perf_counter()
             for b in range(n):
@@ -189,6 +199,24 @@ class DetectionEvaluator:
         timings["num_frames"] = float(len(results) - len(done))
         return results, timings
 
+    def candidate_summary(self) -> dict:
+        """How the candidate cap fared on the frames predicted by the last run.
+
+        ``top_k``: candidates kept per image (``None``: every anchor);
+        ``frames_over_cap``: frames with more filter-kept anchors above the score
+        threshold than were kept (those lost candidates before NMS; 0 expected);
+        ``max_candidates``: the largest such count of one frame.
+        """
+        counts = list(self.candidate_counts.values())
+        over = [c for c in counts if self.num_kept and c > self.num_kept]
+        return {
+            "top_k": self.top_k,
+            "kept_per_frame": self.num_kept,
+            "frames": len(counts),
+            "frames_over_cap": len(over),
+            "max_candidates": max(counts, default=0),
+        }
+
     def evaluate(
         self,
         variables,
@@ -196,7 +224,11 @@ class DetectionEvaluator:
         resume: bool = True,
         max_batches: int | None = None,
     ) -> dict:
-        """Runs :meth:`predict_split` and the KITTI protocol; returns the metrics and timings."""
+        """Runs :meth:`predict_split` and the KITTI protocol.
+
+        Returns ``{'metrics', 'timings', 'num_frames', 'candidates'}`` (the last:
+        :meth:`candidate_summary`).
+        """
         detections, timings = self.predict_split(variables, result_dir, resume, max_batches)
         ids = self.frame_ids()
         index = [i for i, fid in enumerate(ids) if fid in detections]
@@ -205,4 +237,9 @@ class DetectionEvaluator:
         t0 = time.perf_counter()
         metrics = evaluate_detections(gt, dt, classes=self.class_names)
         timings["kitti_eval_s"] = time.perf_counter() - t0
-        return {"metrics": metrics, "timings": timings, "num_frames": len(index)}
+        return {
+            "metrics": metrics,
+            "timings": timings,
+            "num_frames": len(index),
+            "candidates": self.candidate_summary(),
+        }

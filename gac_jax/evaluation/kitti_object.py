@@ -458,6 +458,24 @@ def evaluate_detections(
     return result
 
 
+def overlap_meta(result: dict) -> dict:
+    """The minimum overlaps behind each entry of an :func:`evaluate_detections` result.
+
+    Entries are keyed by their bev/3d overlap only; the loose setting keeps the
+    2D box (and so AOS) overlap at the strict value, as the devkit port, mmdet3d
+    and papers do. Returns ``{class: {iou_key: {"setting": "strict"|"loose",
+    "bbox"|"aos"|"bev"|"3d": min_overlap}}}`` for the classes in ``result``.
+    """
+    classes = {cls for ap in ("ap11", "ap40") for cls in result.get(ap, {})}
+    meta: dict = {}
+    for cls in (c for c in CLASSES if c in classes):
+        meta[cls] = {}
+        for name, (bbox, bev, d3) in zip(("strict", "loose"), MIN_OVERLAPS[cls], strict=True):
+            entry = {"setting": name, "bbox": bbox, "aos": bbox, "bev": bev, "3d": d3}
+            meta[cls][iou_key(bev)] = entry
+    return meta
+
+
 def format_table(result: dict) -> str:
     """Readable table of :func:`evaluate_detections` output: class x difficulty per metric."""
     lines = []

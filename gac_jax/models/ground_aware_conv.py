@@ -184,7 +184,9 @@ class GroundAwareConv(nn.Module):
 
     Returns ``{'features': (B,H,W,C), 'offset_rows': (B,H,W) rows from each pixel to its
     sample point (before clamping; the paper's Fig. 7 green points are at row
-    ``v + offset_rows``), 'sample_rows': (B,H,W) clamped rows actually sampled}``.
+    ``v + offset_rows``), 'sample_rows': (B,H,W) clamped rows actually sampled}``. Offsets
+    and rows are in ``promote_types(dtype, float32)``: float32 for float32/bfloat16 modules,
+    float64 for float64 ones (with ``jax_enable_x64``).
     """
 
     stride: float = 16
@@ -205,6 +207,10 @@ class GroundAwareConv(nn.Module):
         if P.shape != (B, 3, 4):
             raise ValueError(f"P must have shape (B,3,4) = {(B, 3, 4)}, got {P.shape}")
         x = x.astype(self.dtype)
+        # Geometry (offsets, sampling rows, the disparity prior) in the module's dtype, but
+        # never below float32 (a bfloat16 row index near 17 has a 0.125-row step): float64
+        # runs stay float64 end to end.
+        geo = jnp.promote_types(self.dtype, jnp.float32)
 
         d0 = nn.Conv(
             1,
@@ -216,18 +222,18 @@ class GroundAwareConv(nn.Module):
             param_dtype=self.param_dtype,
             name="offset_conv",
         )(x)
-        d0 = jnp.tanh(d0[..., 0].astype(jnp.float32))
+        d0 = jnp.tanh(d0[..., 0].astype(geo))
         g = self.offset_grad_scale
         d0 = g * d0 + (1.0 - g) * jax.lax.stop_gradient(d0)
         d = self.offset_scale * d0  # (B,H,W), grid_sample-normalised units
 
-        P = jnp.asarray(P, jnp.float32)
+        P = jnp.asarray(P, geo)
         disp = disparity_prior(H, P, self.stride, self.baseline, self.camera_height)  # (B,H)
         base_rows = base_offset(
             H, P, self.stride, self.object_height, self.camera_height, self.offset_formula
         )  # (B,H)
         offset_rows = (base_rows[:, :, None] / (H / 2.0) + d) * ((H - 1) / 2.0)
-        rows = jnp.arange(H, dtype=jnp.float32)[None, :, None] + offset_rows
+        rows = jnp.arange(H, dtype=geo)[None, :, None] + offset_rows
 
         disp_map = jnp.broadcast_to(disp[:, :, None, None], (B, H, W, 1)).astype(x.dtype)
         sampled = vertical_gather(jnp.concatenate([disp_map, x], axis=-1), rows)
