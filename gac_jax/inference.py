@@ -56,6 +56,39 @@ class PostprocessConfig:
     max_detections: int | None = None
 
 
+def select_candidates(
+    outputs: dict,
+    constants: DetectionConstants,
+    P2: jax.Array,
+    top_k: int,
+    filter_options: dict | None = None,
+    *,
+    use_ground_filter: bool = True,
+) -> dict:
+    """Network outputs -> the ``top_k`` best decoded candidates per image (jit-compatible).
+
+    The part of :func:`make_predict_fn` after the network, shared with the exported
+    runtimes (:mod:`gac_jax.runtimes`), which compute ``outputs`` (``cls_logits`` (B,N,K),
+    ``sign_logits`` (B,N), ``reg`` (B,N,12)) outside JAX.
+    """
+    filter_options = dict(filter_options or {})
+    decoded = decode_outputs(outputs, constants)
+    keep = decoded["prior_valid"]
+    if use_ground_filter:
+        keep = keep & ground_mask_from_constants(constants, P2, **filter_options)
+    scores = jnp.where(keep, decoded["scores"], -1.0)
+    k = min(top_k, scores.shape[1])
+    top_scores, index = jax.lax.top_k(scores, k)
+
+    def take(x):
+        idx = index.reshape(index.shape + (1,) * (x.ndim - 2))
+        return jnp.take_along_axis(x, idx, axis=1)
+
+    out = {key: take(decoded[key]) for key in CANDIDATE_KEYS if key != "scores"}
+    out["scores"] = top_scores
+    return out
+
+
 def make_predict_fn(
     model,
     constants: DetectionConstants,
@@ -84,21 +117,9 @@ def make_predict_fn(
     @jax.jit
     def predict(variables, images, P2):
         outputs = model.apply(variables, images, P2, train=False)
-        decoded = decode_outputs(outputs, constants)
-        keep = decoded["prior_valid"]
-        if use_ground_filter:
-            keep = keep & ground_mask_from_constants(constants, P2, **filter_options)
-        scores = jnp.where(keep, decoded["scores"], -1.0)
-        k = min(top_k, scores.shape[1])
-        top_scores, index = jax.lax.top_k(scores, k)
-
-        def take(x):
-            idx = index.reshape(index.shape + (1,) * (x.ndim - 2))
-            return jnp.take_along_axis(x, idx, axis=1)
-
-        out = {key: take(decoded[key]) for key in CANDIDATE_KEYS if key != "scores"}
-        out["scores"] = top_scores
-        return out
+        return select_candidates(
+            outputs, constants, P2, top_k, filter_options, use_ground_filter=use_ground_filter
+        )
 
     return predict
 

@@ -29,7 +29,9 @@ def fold_batch_norm(
     b = np.zeros(cout) if bias is None else np.asarray(bias, np.float64)
     w = kernel.transpose(3, 2, 0, 1)  # HWIO -> OIHW
     if bn is not None:
-        s = np.asarray(bn["scale"], np.float64) / np.sqrt(np.asarray(bn["var"], np.float64) + epsilon)
+        s = np.asarray(bn["scale"], np.float64) / np.sqrt(
+            np.asarray(bn["var"], np.float64) + epsilon
+        )
         w = w * s[:, None, None, None]
         b = (b - np.asarray(bn["mean"], np.float64)) * s + np.asarray(bn["bias"], np.float64)
     return w.astype(np.float32), b.astype(np.float32)

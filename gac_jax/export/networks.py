@@ -160,7 +160,9 @@ def _ground_aware_conv(
     den = g.op("Mul", [fy, g.const(np.float32(geometry["camera_height"]))])
     den = g.op("Add", [g.op("Abs", [g.op("Add", [den, ty])]), g.const(np.float32(1e-10))])
     disp = g.op("Relu", [g.op("Div", [num, den])])
-    disp_map = g.op("Expand", [g.reshape(disp, [-1, 1, H, 1]), g.const([1, 1, H, W], "sh", np.int64)])
+    disp_map = g.op(
+        "Expand", [g.reshape(disp, [-1, 1, H, 1]), g.const([1, 1, H, W], "sh", np.int64)]
+    )
     # base offset (rows) and the learned residual d = offset_scale * tanh(offset_conv(x))
     coef = _base_offset_coefficient(
         geometry["offset_formula"], geometry["object_height"], geometry["camera_height"]
@@ -181,7 +183,9 @@ def _ground_aware_conv(
     )
     frac = g.op("Sub", [rows, r0])
     i0 = g.op("Cast", [r0], to=onnx.TensorProto.INT64)
-    i1 = g.op("Min", [g.op("Add", [i0, g.const(1, "one", np.int64)]), g.const(H - 1, "hm1", np.int64)])
+    i1 = g.op(
+        "Min", [g.op("Add", [i0, g.const(1, "one", np.int64)]), g.const(H - 1, "hm1", np.int64)]
+    )
     shape = g.op("Shape", [feats])
     f0 = g.op("GatherElements", [feats, g.op("Expand", [i0, shape])], axis=2)
     f1 = g.op("GatherElements", [feats, g.op("Expand", [i1, shape])], axis=2)
@@ -238,7 +242,9 @@ def detector_graph(
     elif block == "disparity_conv":
         fy, cy, ty = _feature_rows(g, _projection_rows(g, P2), (FEATURE_STRIDE,), keep_ty=True)
         v = g.const(np.arange(Hf, dtype=np.float32)[None, :], "rows")
-        num = g.op("Mul", [g.op("Mul", [fy, g.const(np.float32(model.baseline))]), g.op("Sub", [v, cy])])
+        num = g.op(
+            "Mul", [g.op("Mul", [fy, g.const(np.float32(model.baseline))]), g.op("Sub", [v, cy])]
+        )
         den = g.op("Mul", [fy, g.const(np.float32(model.camera_height))])
         den = g.op("Add", [g.op("Abs", [g.op("Add", [den, ty])]), g.const(np.float32(1e-10))])
         disp = g.reshape(g.op("Relu", [g.op("Div", [num, den])]), [-1, 1, Hf, 1])
@@ -301,9 +307,7 @@ def depth_graph(
     P2 = g.add_input("P2", ["batch", 3, 4])
     x = g.op("Transpose", [images], perm=[0, 3, 1, 2])
     skips = _resnet(g, w, x, model.depth, model.width, 4, "backbone")
-    sizes = {
-        f"layer{L}": (layer_output_size(H, L), layer_output_size(W, L)) for L in range(1, 5)
-    }
+    sizes = {f"layer{L}": (layer_output_size(H, L), layer_output_size(W, L)) for L in range(1, 5)}
     rows = _projection_rows(g, P2) if model.use_gac else None
     x, have = skips["layer4"], sizes["layer4"]
     for name, skip, stride, gac in DECODER_STAGES:
