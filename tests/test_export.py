@@ -37,10 +37,8 @@ def perturb(variables: dict, seed: int = 0) -> dict:
             return (np.abs(x) + rng.uniform(0.5, 1.5, x.shape)).astype(np.float32)
         if "alpha" in name:
             return np.full_like(x, 0.7)
-        if "kernel" in name:  # He-scaled, so activations neither vanish nor explode
-            scale = (2.0 / max(np.prod(x.shape[:-1]), 1)) ** 0.5
-        else:
-            scale = 0.2
+        # kernels He-scaled, so activations neither vanish nor explode
+        scale = (2.0 / max(np.prod(x.shape[:-1]), 1)) ** 0.5 if "kernel" in name else 0.2
         return (x + rng.normal(0.0, scale, x.shape)).astype(np.float32)
 
     return jax.tree_util.tree_map_with_path(f, variables)
