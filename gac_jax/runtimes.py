@@ -212,8 +212,12 @@ class OnnxNetwork:
         self._compiled = core.compile_model(model, "CPU", config)
         self._request = self._compiled.create_infer_request()
         self.precision_in_effect = str(self._compiled.get_property("INFERENCE_PRECISION_HINT"))
-        names = [o.get_any_name() for o in self._compiled.outputs]
-        return shapes, names
+        # an output tensor may carry several names (OpenVINO merges the Identity ops)
+        self._ports = {}
+        for port in self._compiled.outputs:
+            for name in port.get_names():
+                self._ports[name] = port
+        return shapes, list(self._ports)
 
     def __call__(self, images: np.ndarray, P2: np.ndarray) -> dict[str, np.ndarray]:
         feed = {
@@ -224,7 +228,8 @@ class OnnxNetwork:
             values = self._session.run(list(self.outputs), feed)
             return dict(zip(self.outputs, values, strict=True))
         result = self._request.infer(feed)
-        return {name: np.array(result[name]) for name in self.outputs}  # copy out of the request
+        # copy out of the request's buffers
+        return {name: np.array(result[self._ports[name]]) for name in self.outputs}
 
 
 class RuntimeDetectionPredict:

@@ -94,22 +94,21 @@ def test_export_cli_writes_a_described_checksummed_model(tiny_detect3d_workdir, 
 
 
 def test_corrupted_and_stale_exports_are_refused(onnx_run, tmp_path, capsys):
-    wd, _ = onnx_run
+    wd = tmp_path / "wd"  # the run with its export, without its results
+    shutil.copytree(onnx_run[0], wd, ignore=shutil.ignore_patterns("eval"))
     exported = wd / "export" / "step2"
-    # stale: the config changes the network (GAC camera height)
     argv = ["--task", "detect3d", "--workdir", wd, "--runtime", "onnxruntime"]
-    code, _, err = run([*argv, "--out", tmp_path / "o1", "model.gac.camera_height=1.8"], capsys)
+    # stale: the config changes the network (GAC camera height)
+    code, _, err = run([*argv, "model.gac.camera_height=1.8"], capsys)
     assert code == 2 and err.count("\n") == 1
     assert f"{exported / 'model.onnx'}: stale export" in err
     assert "network_config.model.gac.camera_height (export: 1.65, run: 1.8)" in err
     # corrupted: a truncated model.onnx
-    copy = tmp_path / "exp"
-    shutil.copytree(exported, copy)
-    data = (copy / "model.onnx").read_bytes()
-    (copy / "model.onnx").write_bytes(data[: len(data) // 2])
-    code, _, err = run([*argv, "--out", tmp_path / "o2", "--export", copy], capsys)
+    data = (exported / "model.onnx").read_bytes()
+    (exported / "model.onnx").write_bytes(data[: len(data) // 2])
+    code, _, err = run(argv, capsys)
     assert code == 2 and err.count("\n") == 1
-    assert f"{copy / 'model.onnx'}: corrupted or replaced" in err
+    assert f"{exported / 'model.onnx'}: corrupted or replaced" in err
 
 
 def test_check_export_names_another_step():
@@ -165,3 +164,22 @@ def test_bf16_without_native_support_is_one_line(monkeypatch):
         assert "no native bf16 support" in str(info.value) and "\n" not in str(info.value)
     note = runtimes.check_runtime("jax", "bf16")
     assert "XLA:CPU" in note and "\n" not in note
+
+
+def test_predict_with_openvino_gives_the_jax_results(onnx_run, kitti_object_root, tmp_path, capsys):
+    """``python -m gac_jax.predict --runtime openvino`` (float32, batch 2: the last batch is
+    padded) on the 13 training images, reusing the run's export: the trainer's results."""
+    pytest.importorskip("openvino", reason="deploy extra (openvino) not installed")
+    from gac_jax import predict
+
+    wd, out = onnx_run[0], tmp_path / "out"
+    images = kitti_object_root / "training" / "image_2"
+    argv = [
+        *("--workdir", wd, images, "--out", out, "--batch-size", 2, "--no-images"),
+        *("--runtime", "openvino", "--precision", "f32"),
+    ]
+    code = predict.main([str(a) for a in argv])
+    stdout, err = capsys.readouterr()
+    assert code == 0, err
+    assert "openvino f32" in stdout and "exported" not in stdout  # the existing export
+    assert_same_results(out / "data", wd / "results" / "step_2" / "data")
