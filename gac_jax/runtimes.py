@@ -211,7 +211,8 @@ class OnnxNetwork:
         }
         self._compiled = core.compile_model(model, "CPU", config)
         self._request = self._compiled.create_infer_request()
-        self.precision_in_effect = str(self._compiled.get_property("INFERENCE_PRECISION_HINT"))
+        hint = self._compiled.get_property("INFERENCE_PRECISION_HINT")
+        self.precision_in_effect = hint.get_type_name() if hasattr(hint, "get_type_name") else hint
         # an output tensor may carry several names (OpenVINO merges the Identity ops)
         self._ports = {}
         for port in self._compiled.outputs:

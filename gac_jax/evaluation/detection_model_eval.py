@@ -410,6 +410,11 @@ def evaluate_detector_workdir(
     out = Path(out_dir) if out_dir else workdir / "eval" / f"{split}_{detector.tag}{suffix}"
     result_dir = out / "data"
     settings = run_settings(detector, split, root, dtype, runtime, precision)
+    compile_s = None
+    if onnx:  # load (or export) first: a refused export leaves no run.json behind
+        compile_s = use_runtime(
+            evaluator, detector, workdir, runtime, precision, export_dir=export_dir, threads=threads
+        )
     _check_resumable(out / "run.json", settings)
     ids = evaluator.frame_ids()
     resumed = sum((result_dir / f"{fid}.txt").exists() for fid in ids)
@@ -418,21 +423,8 @@ def evaluate_detector_workdir(
         f"({resumed} already done) -> {result_dir}",
         flush=True,
     )
-    compile_s = None
-    if resumed < len(ids):
-        size = (config.data.height, config.data.width)
-        if onnx:
-            compile_s = use_runtime(
-                evaluator,
-                detector,
-                workdir,
-                runtime,
-                precision,
-                export_dir=export_dir,
-                threads=threads,
-            )
-        else:
-            compile_s = evaluator.compile(detector.variables, size)
+    if resumed < len(ids) and not onnx:
+        compile_s = evaluator.compile(detector.variables, (config.data.height, config.data.width))
     result = evaluator.evaluate(detector.variables, result_dir, resume=True)
     speed = timing_summary(result["timings"], evaluator.batch_timings)
     threads = xla_thread_count() or threads  # the compute threads XLA actually started
