@@ -153,6 +153,11 @@ def load_source(
                 checkpoint or config_spec,
                 "depth networks are exported from their training workdir (--workdir W)",
             )
+        if overrides:
+            raise KittiFormatError(
+                Path(workdir) / "config.json",
+                "depth exports use the workdir's config as trained; overrides do not apply",
+            )
         config, model, variables, step = restore_depth_model(workdir, step)
         return depth_source(config, model, variables, step=step, workdir=workdir)
 
