@@ -59,6 +59,44 @@ class PostprocessConfig:
     max_detections: int | None = None
 
 
+def select_candidates(
+    outputs: dict,
+    constants: DetectionConstants,
+    P2: jax.Array,
+    top_k: int | None,
+    filter_options: dict | None = None,
+    *,
+    use_ground_filter: bool = True,
+    score_threshold: float | None = None,
+) -> dict:
+    """Network outputs -> the ``top_k`` best decoded candidates per image (jit-compatible).
+
+    The part of :func:`make_predict_fn` after the network, shared with the exported
+    runtimes (:mod:`gac_jax.runtimes`), which compute ``outputs`` (``cls_logits`` (B,N,K),
+    ``sign_logits`` (B,N), ``reg`` (B,N,12)) outside JAX. ``top_k`` and
+    ``score_threshold`` as in :func:`make_predict_fn`; the result is its dict.
+    """
+    filter_options = dict(filter_options or {})
+    threshold = -1.0 if score_threshold is None else float(score_threshold)
+    decoded = decode_outputs(outputs, constants)
+    keep = decoded["prior_valid"]
+    if use_ground_filter:
+        keep = keep & ground_mask_from_constants(constants, P2, **filter_options)
+    scores = jnp.where(keep, decoded["scores"], -1.0)
+    num_candidates = jnp.sum(keep & (decoded["scores"] > threshold), axis=1)
+    k = scores.shape[1] if top_k is None else min(top_k, scores.shape[1])
+    top_scores, index = jax.lax.top_k(scores, k)
+
+    def take(x):
+        idx = index.reshape(index.shape + (1,) * (x.ndim - 2))
+        return jnp.take_along_axis(x, idx, axis=1)
+
+    out = {key: take(decoded[key]) for key in CANDIDATE_KEYS if key != "scores"}
+    out["scores"] = top_scores
+    out["num_candidates"] = num_candidates.astype(jnp.int32)
+    return out
+
+
 def make_predict_fn(
     model,
     constants: DetectionConstants,
@@ -91,28 +129,19 @@ def make_predict_fn(
     filter_options = dict(filter_options or {})
     if top_k is not None and top_k < 1:
         raise ValueError(f"top_k must be >= 1 or None (every anchor), got {top_k}")
-    threshold = -1.0 if score_threshold is None else float(score_threshold)
 
     @jax.jit
     def predict(variables, images, P2):
         outputs = model.apply(variables, images, P2, train=False)
-        decoded = decode_outputs(outputs, constants)
-        keep = decoded["prior_valid"]
-        if use_ground_filter:
-            keep = keep & ground_mask_from_constants(constants, P2, **filter_options)
-        scores = jnp.where(keep, decoded["scores"], -1.0)
-        num_candidates = jnp.sum(keep & (decoded["scores"] > threshold), axis=1)
-        k = scores.shape[1] if top_k is None else min(top_k, scores.shape[1])
-        top_scores, index = jax.lax.top_k(scores, k)
-
-        def take(x):
-            idx = index.reshape(index.shape + (1,) * (x.ndim - 2))
-            return jnp.take_along_axis(x, idx, axis=1)
-
-        out = {key: take(decoded[key]) for key in CANDIDATE_KEYS if key != "scores"}
-        out["scores"] = top_scores
-        out["num_candidates"] = num_candidates.astype(jnp.int32)
-        return out
+        return select_candidates(
+            outputs,
+            constants,
+            P2,
+            top_k,
+            filter_options,
+            use_ground_filter=use_ground_filter,
+            score_threshold=score_threshold,
+        )
 
     return predict
 

@@ -3,6 +3,7 @@
     python -m gac_jax.predict --workdir W IMAGE_OR_DIR [--calib FILE_OR_DIR] [--out DIR]
         [--no-images] [--step N | --checkpoint DIR --config C] [--camera 2|3]
         [--score-threshold S] [--batch-size B] [--threads T]
+        [--runtime jax|onnxruntime|openvino] [--precision f32|bf16] [--export DIR]
 
 ``IMAGE_OR_DIR`` is one image (PNG/JPEG) or a folder of them. Each image needs
 its KITTI calibration file (``P2: ...`` line; ``--camera 3`` uses ``P3``):
@@ -15,7 +16,9 @@ width); results are in original-image pixels.
 Writes ``OUT/data/<stem>.txt`` (KITTI result lines with scores) and, unless
 ``--no-images``, ``OUT/pictures/<stem>.png`` (3D/2D boxes and a bird's-eye view)
 plus ``OUT/pictures/grid.png``. ``OUT`` defaults to ``W/predict/<input name>``.
-Errors end with ``error: <file>: <problem>`` and exit code 2.
+``--runtime onnxruntime|openvino`` runs the exported network (:mod:`gac_jax.runtimes`; the
+export is written to ``W/export/<weights>`` when absent) with the same decoding and
+post-processing. Errors end with ``error: <file>: <problem>`` and exit code 2.
 """
 
 from __future__ import annotations
@@ -152,14 +155,30 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--score-threshold", type=float, help="default: the config's")
     parser.add_argument("--batch-size", type=int, default=1, help="images per model call")
     parser.add_argument("--threads", type=int, help="CPU threads of XLA (default: all usable)")
+    parser.add_argument(
+        "--runtime",
+        choices=("jax", "onnxruntime", "openvino"),
+        default="jax",
+        help="what runs the network (default jax; the others export it to W/export/ if absent)",
+    )
+    parser.add_argument("--precision", choices=("f32", "bf16"), default="f32")
+    parser.add_argument(
+        "--export", metavar="DIR", help="export folder for --runtime (default: W/export/<weights>)"
+    )
     return parser
 
 
 def predict(args: argparse.Namespace, threads: int) -> Path:
     """Runs the command (``threads``: XLA CPU threads in effect); returns the output folder."""
+    import jax.numpy as jnp
+
     from gac_jax.builders.detect3d import eval_transform, filter_options
     from gac_jax.data.files import KittiFormatError
-    from gac_jax.evaluation.detection_model_eval import load_detector, postprocess_config
+    from gac_jax.evaluation.detection_model_eval import (
+        load_detector,
+        postprocess_config,
+        use_runtime,
+    )
     from gac_jax.evaluation.detection_pictures import save_pictures
     from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
     from gac_jax.evaluation.model_mode import load_run_config
@@ -173,7 +192,10 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     if args.score_threshold is not None:
         overrides.append(f"eval.score_threshold={args.score_threshold}")
     config = load_run_config(workdir, args.config, overrides)
-    detector = load_detector(workdir, config, step=args.step, checkpoint=args.checkpoint)
+    dtype = jnp.bfloat16 if (args.runtime, args.precision) == ("jax", "bf16") else jnp.float32
+    detector = load_detector(
+        workdir, config, step=args.step, checkpoint=args.checkpoint, dtype=dtype
+    )
     d = config.data
     source = ImageSource(images, calibs, args.camera, (d.crop_top, d.height, d.width))
     evaluator = DetectionEvaluator(
@@ -191,13 +213,25 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     name = Path(args.input).resolve()
     out = Path(args.out) if args.out else workdir / "predict" / (name.stem or "input")
     print(f"{detector.weights}: {len(images)} images -> {out}", flush=True)
-    compile_s = evaluator.compile(detector.variables, (config.data.height, config.data.width))
+    if args.runtime == "jax":
+        compile_s = evaluator.compile(detector.variables, (d.height, d.width))
+    else:
+        compile_s = use_runtime(
+            evaluator,
+            detector,
+            workdir,
+            args.runtime,
+            args.precision,
+            export_dir=args.export,
+            threads=threads,
+        )
     detections, timings = evaluator.predict_split(detector.variables, out / "data", resume=False)
     n = int(timings["num_frames"])
     total = timings["model_s"] + timings["postprocess_s"] + timings["io_s"]
     print(
         f"{n} images, {sum(len(d) for d in detections.values())} detections; "
-        f"{n / total:.2f} images/s on {threads} CPU threads (model {timings['model_s']:.2f} s, "
+        f"{n / total:.2f} images/s on {threads} CPU threads, {args.runtime} {args.precision} "
+        f"(model {timings['model_s']:.2f} s, "
         f"post-processing {timings['postprocess_s']:.2f} s, I/O {timings['io_s']:.2f} s; "
         f"compile {compile_s:.1f} s)"
     )
@@ -224,8 +258,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--step selects a checkpoint of the workdir; it cannot go with --checkpoint")
     if args.batch_size < 1:
         parser.error("--batch-size must be >= 1")
+    if args.export and args.runtime == "jax":
+        parser.error("--export only applies with --runtime onnxruntime|openvino")
     from gac_jax.data.files import KittiFormatError
-    from gac_jax.evaluation.model_mode import limit_cpu_threads
+    from gac_jax.evaluation.model_mode import limit_cpu_threads, resolve_runtime
+
+    resolve_runtime(args.runtime, args.precision)
 
     try:
         threads = limit_cpu_threads(args.threads)

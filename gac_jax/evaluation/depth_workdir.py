@@ -22,6 +22,7 @@ import json
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import ml_collections
 
 from gac_jax.checkpointing import Checkpoints
@@ -36,6 +37,7 @@ from gac_jax.evaluation.depth_evaluator import (
     NetworkPredictor,
 )
 from gac_jax.evaluation.depth_metrics import format_depth_table
+from gac_jax.evaluation.model_mode import resolve_runtime, run_suffix
 from gac_jax.train_state import TrainState, learning_rate_schedule, make_optimizer
 
 BASELINES = ("ground-plane", "row-mean")
@@ -105,22 +107,72 @@ def _tag(source, split: str | None) -> str:
     return split or getattr(source, "split", "val")
 
 
+def runtime_predictor(
+    config,
+    model,
+    variables,
+    step: int,
+    workdir: str | Path,
+    runtime: str,
+    precision: str,
+    export_dir: str | Path | None = None,
+):
+    """The depth predictor of a runtime: the jitted network (``jax``; ``bf16`` = bfloat16
+    compute dtype) or the exported one (written to ``export_dir``, default
+    ``W/export/step<N>``, when absent; refused when stale or corrupted)."""
+    if runtime == "jax":
+        if precision == "bf16":
+            model = model.clone(dtype=jnp.bfloat16)
+        return NetworkPredictor(model, variables)
+    from gac_jax.export.networks import ExportError
+    from gac_jax.export.sources import depth_source, ensure_export
+    from gac_jax.runtimes import DEPTH_OUTPUTS, OnnxNetwork, RuntimeDepthPredictor
+
+    out = Path(export_dir) if export_dir else Path(workdir) / "export" / f"step{step}"
+    try:
+        _, exported = ensure_export(depth_source(config, model, variables, step=step), out)
+    except ExportError as e:
+        raise KittiFormatError(out, str(e)) from None
+    if exported:
+        print(f"exported the network to {out}", flush=True)
+    network = OnnxNetwork(
+        out / "model.onnx",
+        runtime,
+        precision,
+        outputs=DEPTH_OUTPUTS,
+        image_size=(config.data.height, config.data.eval_width),
+    )
+    return RuntimeDepthPredictor(network)
+
+
 def evaluate_workdir(
     workdir: str | Path,
     data: str | None = None,
     split: str | None = None,
     step: int | None = None,
     out: str | Path | None = None,
+    runtime: str = "jax",
+    precision: str = "f32",
+    export_dir: str | Path | None = None,
 ) -> dict:
-    """Runs a trained depth model over a split; returns the evaluator's result dict."""
+    """Runs a trained depth model over a split; returns the evaluator's result dict.
+
+    ``runtime`` / ``precision``: see :func:`runtime_predictor`; a non-default pair adds
+    ``_<runtime>_<precision>`` to the default output folder.
+    """
     from gac_jax.builders import depth as builders
 
     config, model, variables, step = restore_depth_model(workdir, step)
     source = _data_source(config, data, split)
-    out = Path(out) if out else Path(workdir) / "eval" / f"step_{step}_{_tag(source, split)}"
+    name = f"step_{step}_{_tag(source, split)}{run_suffix(runtime, precision)}"
+    out = Path(out) if out else Path(workdir) / "eval" / name
     evaluator = builders.make_evaluator(config, source)
-    result = evaluator.evaluate(NetworkPredictor(model, variables), out / "depth", out / "pictures")
+    predictor = runtime_predictor(
+        config, model, variables, step, workdir, runtime, precision, export_dir
+    )
+    result = evaluator.evaluate(predictor, out / "depth", out / "pictures")
     result["step"] = step
+    result["runtime"] = {"runtime": runtime, "precision": precision}
     with atomic_write(out / "metrics.json") as f:
         json.dump(result, f, indent=2)
     print(
@@ -164,7 +216,17 @@ def run(args: argparse.Namespace) -> dict:
     if args.baseline:
         result = evaluate_baseline(args.baseline, args.data, args.split, args.workdir, args.out)
     else:
-        result = evaluate_workdir(args.workdir, args.data, args.split, args.step, args.out)
+        export = getattr(args, "export", None)
+        runtime, precision = resolve_runtime(
+            getattr(args, "runtime", None), getattr(args, "precision", None)
+        )
+        if export and runtime == "jax":
+            raise KittiFormatError(
+                export, "--export only applies with --runtime onnxruntime|openvino"
+            )
+        result = evaluate_workdir(
+            args.workdir, args.data, args.split, args.step, args.out, runtime, precision, export
+        )
     if result["metrics"]:
         print(format_depth_table(result["metrics"], result["num_scored"]), end="")
     else:

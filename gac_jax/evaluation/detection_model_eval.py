@@ -55,7 +55,13 @@ from gac_jax.data.sources import open_object_source
 from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
 from gac_jax.evaluation.kitti_object import format_table
-from gac_jax.evaluation.model_mode import limit_cpu_threads, load_run_config, xla_thread_count
+from gac_jax.evaluation.model_mode import (
+    limit_cpu_threads,
+    load_run_config,
+    resolve_runtime,
+    run_suffix,
+    xla_thread_count,
+)
 from gac_jax.inference import PostprocessConfig
 from gac_jax.models.detector import Detector
 
@@ -93,7 +99,7 @@ def postprocess_config(config: ml_collections.ConfigDict) -> PostprocessConfig:
     )
 
 
-def _variables_template(model: Detector, config) -> dict:
+def variables_template(model: Detector, config) -> dict:
     d = config.data
     images = jax.ShapeDtypeStruct((1, d.height, d.width, 3), jnp.float32)
     P2 = jax.ShapeDtypeStruct((1, 3, 4), jnp.float32)
@@ -130,7 +136,7 @@ def _load_priors(config, workdir: Path, layout, converted: bool):
     return compute_priors(config, root, layout, workdir)
 
 
-def _restore_workdir_weights(workdir: Path, step: int | None, template) -> tuple[dict, int]:
+def restore_workdir_weights(workdir: Path, step: int | None, template) -> tuple[dict, int]:
     directory = workdir / "checkpoints"
     how = (
         f"train first (python train.py --task detect3d --workdir {workdir}) or pass "
@@ -188,7 +194,7 @@ def load_detector(
     priors = _load_priors(config, workdir, layout, converted=checkpoint is not None)
     constants = make_detection_constants(generate_anchors(layout), priors, sign_axis(config))
     model = build_model(config, layout.anchors_per_cell).clone(dtype=dtype)
-    template = _variables_template(model, config)
+    template = variables_template(model, config)
     if checkpoint is not None:
         try:
             variables = pretrained.load_converted_variables(checkpoint, template)
@@ -199,13 +205,89 @@ def load_detector(
         return LoadedDetector(
             config, model, constants, variables, f"converted weights {path}", name
         )
-    variables, step = _restore_workdir_weights(workdir, step, template)
+    variables, step = restore_workdir_weights(workdir, step, template)
     return LoadedDetector(
         config, model, constants, variables, f"step {step} of {workdir}", f"step{step}", step
     )
 
 
-def run_settings(detector: LoadedDetector, split: str, root: Path, dtype) -> dict:
+def default_export_dir(workdir: str | os.PathLike, detector: LoadedDetector) -> Path:
+    """Where ``--runtime onnxruntime|openvino`` keeps the export of these weights."""
+    return Path(workdir) / "export" / detector.tag
+
+
+def use_runtime(
+    evaluator: DetectionEvaluator,
+    detector: LoadedDetector,
+    workdir: str | os.PathLike,
+    runtime: str,
+    precision: str,
+    *,
+    export_dir: str | os.PathLike | None = None,
+    threads: int | None = None,
+) -> float:
+    """Points ``evaluator`` at the exported network in ``runtime`` (the jitted decoding,
+    top-k and host post-processing stay as they are); returns the load + warm-up seconds.
+
+    The export in ``export_dir`` (default :func:`default_export_dir`) is written when absent
+    and refused when stale or corrupted (:func:`gac_jax.export.sources.ensure_export`).
+    """
+    import time
+
+    from gac_jax.export.networks import ExportError
+    from gac_jax.export.sources import detector_source, ensure_export
+    from gac_jax.runtimes import DETECTOR_OUTPUTS, OnnxNetwork, RuntimeDetectionPredict
+
+    t0 = time.perf_counter()
+    config = detector.config
+    out = Path(export_dir) if export_dir else default_export_dir(workdir, detector)
+    source = detector_source(
+        config,
+        detector.model,
+        detector.variables,
+        step=detector.step,
+        checkpoint=None
+        if detector.step is not None
+        else detector.weights.removeprefix("converted weights "),
+        workdir=workdir,
+    )
+    try:
+        _, exported = ensure_export(source, out)
+    except ExportError as e:
+        raise KittiFormatError(out, str(e)) from None
+    if exported:
+        print(f"exported the network to {out}", flush=True)
+    size = (config.data.height, config.data.width)
+    network = OnnxNetwork(
+        out / "model.onnx",
+        runtime,
+        precision,
+        outputs=DETECTOR_OUTPUTS,
+        image_size=size,
+        threads=threads,
+        batch_size=evaluator.batch_size,
+    )
+    predict = RuntimeDetectionPredict(
+        network,
+        detector.constants,
+        top_k=evaluator.top_k,
+        score_threshold=evaluator.postprocess_config.score_threshold,
+        filter_options=filter_options(config),
+        use_ground_filter=config.anchors.filter,
+    )
+    predict.compile(evaluator.batch_size, size)
+    evaluator.predict = predict
+    return time.perf_counter() - t0
+
+
+def run_settings(
+    detector: LoadedDetector,
+    split: str,
+    root: Path,
+    dtype,
+    runtime: str = "jax",
+    precision: str = "f32",
+) -> dict:
     """What the result files of a run depend on (compared when resuming)."""
     c = detector.config
     return {
@@ -219,7 +301,7 @@ def run_settings(detector: LoadedDetector, split: str, root: Path, dtype) -> dic
         "anchors": c.anchors.to_dict(),
         "model": c.model.to_dict(),
         "eval": {k: v for k, v in c.eval.to_dict().items() if k != "num_pictures"},
-    }
+    } | ({"runtime": runtime, "precision": precision} if runtime != "jax" else {})
 
 
 def _check_resumable(path: Path, settings: dict) -> None:
@@ -300,6 +382,9 @@ def evaluate_detector_workdir(
     threads: int | None = None,
     dtype: Any = jnp.float32,
     out_dir: str | os.PathLike | None = None,
+    runtime: str = "jax",
+    precision: str = "f32",
+    export_dir: str | os.PathLike | None = None,
 ) -> dict:
     """The model mode as a function (see the module docstring); prints as it goes.
 
@@ -313,7 +398,12 @@ def evaluate_detector_workdir(
     if not workdir.is_dir() and not (checkpoint is not None and config_spec):
         raise KittiFormatError(workdir, "workdir not found")
     config = load_run_config(workdir, config_spec, overrides, data_root)
-    detector = load_detector(workdir, config, step=step, checkpoint=checkpoint, dtype=dtype)
+    if runtime == "jax" and precision == "bf16":
+        dtype = jnp.bfloat16
+    onnx = runtime != "jax"
+    detector = load_detector(
+        workdir, config, step=step, checkpoint=checkpoint, dtype=jnp.float32 if onnx else dtype
+    )
     split = split or config.data.val_split
     root = prepare_dataset(config.data)
     source = open_object_source(root, split, use_right_image=False)
@@ -330,9 +420,16 @@ def evaluate_detector_workdir(
         filter_options=filter_options(config),
         use_ground_filter=config.anchors.filter,
     )
-    out = Path(out_dir) if out_dir else workdir / "eval" / f"{split}_{detector.tag}"
+    suffix = run_suffix(runtime, precision)
+    out = Path(out_dir) if out_dir else workdir / "eval" / f"{split}_{detector.tag}{suffix}"
     result_dir = out / "data"
-    _check_resumable(out / "run.json", run_settings(detector, split, root, dtype))
+    settings = run_settings(detector, split, root, dtype, runtime, precision)
+    compile_s = None
+    if onnx:  # load (or export) first: a refused export leaves no run.json behind
+        compile_s = use_runtime(
+            evaluator, detector, workdir, runtime, precision, export_dir=export_dir, threads=threads
+        )
+    _check_resumable(out / "run.json", settings)
     ids = evaluator.frame_ids()
     resumed = sum((result_dir / f"{fid}.txt").exists() for fid in ids)
     print(
@@ -340,14 +437,14 @@ def evaluate_detector_workdir(
         f"({resumed} already done) -> {result_dir}",
         flush=True,
     )
-    compile_s = None
-    if resumed < len(ids):
-        size = (config.data.height, config.data.width)
-        compile_s = evaluator.compile(detector.variables, size)
+    if resumed < len(ids) and not onnx:
+        compile_s = evaluator.compile(detector.variables, (config.data.height, config.data.width))
     result = evaluator.evaluate(detector.variables, result_dir, resume=True)
     speed = timing_summary(result["timings"], evaluator.batch_timings)
     threads = xla_thread_count() or threads  # the compute threads XLA actually started
     print(format_table(result["metrics"]), end="")
+    if onnx:
+        print(f"network: exported ONNX in {runtime} ({precision})")
     print(format_timing(speed, compile_s, threads), end="")
     print(format_candidates(result["candidates"]), end="", flush=True)
     pictures = save_evaluation_pictures(
@@ -367,6 +464,8 @@ def evaluate_detector_workdir(
         "result_dir": str(result_dir),
         "weights": detector.weights,
         "threads": threads,
+        "runtime": runtime,
+        "precision": precision,
     }
     with atomic_write(out / "metrics.json") as f:
         json.dump(summary, f, indent=2)
@@ -382,6 +481,9 @@ def run_model_mode(args, parser) -> dict:
         parser.error("--step selects a checkpoint of the workdir; it cannot go with --checkpoint")
     if args.checkpoint and not args.config and not (Path(args.workdir) / "config.json").exists():
         parser.error("--checkpoint (converted weights) needs --config")
+    if args.export and (args.runtime or "jax") == "jax":
+        parser.error("--export only applies with --runtime onnxruntime|openvino")
+    runtime, precision = resolve_runtime(args.runtime, args.precision)
     try:
         threads = limit_cpu_threads(args.threads)
     except ValueError as e:
@@ -397,5 +499,8 @@ def run_model_mode(args, parser) -> dict:
         batch_size=args.batch_size,
         save_images=args.save_images,
         threads=threads,
+        runtime=runtime,
+        precision=precision,
+        export_dir=args.export,
     )
     return summary["metrics"]

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 from pathlib import Path
 
 import ml_collections
@@ -48,12 +49,29 @@ def add_model_mode_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--threads", type=int, help="CPU threads of the XLA backend (default: every usable core)"
     )
+    g.add_argument(
+        "--runtime",
+        choices=RUNTIME_CHOICES,
+        help="what runs the network: jax (default, jitted) or the exported ONNX file in "
+        "onnxruntime / openvino (exported into the run folder when absent)",
+    )
+    g.add_argument(
+        "--precision",
+        choices=PRECISION_CHOICES,
+        help="f32 (default) or bf16 (openvino: native bf16 kernels where the CPU has them)",
+    )
+    g.add_argument(
+        "--export", metavar="DIR", help="export folder to use (default: W/export/<weights>)"
+    )
     g.add_argument("overrides", nargs="*", help="config overrides key.sub=value (model mode)")
 
 
 MODEL_MODE_OPTIONS = (
-    "config", "data", "split", "step", "checkpoint", "batch_size", "threads", "overrides"
+    "config", "data", "split", "step", "checkpoint", "batch_size", "threads", "overrides",
+    "runtime", "precision", "export",
 )  # fmt: skip
+RUNTIME_CHOICES = ("jax", "onnxruntime", "openvino")  # gac_jax.runtimes.RUNTIMES
+PRECISION_CHOICES = ("f32", "bf16")
 
 
 def reject_model_mode_arguments(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
@@ -66,6 +84,32 @@ def reject_model_mode_arguments(args: argparse.Namespace, parser: argparse.Argum
             "key=value overrides" if g == "overrides" else "--" + g.replace("_", "-") for g in given
         )
         parser.error(f"{flags} only apply with --workdir (model mode)")
+
+
+def resolve_runtime(runtime: str | None, precision: str | None) -> tuple[str, str]:
+    """``(runtime, precision)`` with the defaults (jax, f32) after checking they can run here.
+
+    Prints ``error: <why>`` (one line) and exits with code 2 when they cannot (missing
+    package, no native bf16); prints a one-line note for emulated precisions (JAX bf16).
+    """
+    from gac_jax.runtimes import RuntimeUnavailableError, check_runtime
+
+    runtime, precision = runtime or "jax", precision or "f32"
+    try:
+        note = check_runtime(runtime, precision)
+    except RuntimeUnavailableError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    if note:
+        print(note, flush=True)
+    return runtime, precision
+
+
+def run_suffix(runtime: str, precision: str) -> str:
+    """Result-folder suffix of a runtime/precision ('' for the default jitted float32)."""
+    if runtime == "jax" and precision == "f32":
+        return ""
+    return f"_{runtime}_{precision}"
 
 
 def backend_started() -> bool:

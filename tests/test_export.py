@@ -1,0 +1,179 @@
+"""ONNX export (gac_jax.export): exported float32 networks vs the jitted Flax models.
+
+Tiny models with perturbed weights (non-trivial BatchNorm statistics, GAC ``alpha`` != 0, non-zero
+output convs) so every branch contributes; outputs compared at 1e-4 relative (max |diff| / max
+|reference|) at batch 1 and 2 under ONNX Runtime. Skipped without the deploy extra.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+onnx = pytest.importorskip("onnx", reason="deploy extra (onnx) not installed")
+ort = pytest.importorskip("onnxruntime", reason="deploy extra (onnxruntime) not installed")
+
+from gac_jax.builders import depth as depth_builders  # noqa: E402
+from gac_jax.builders import detect3d as det_builders  # noqa: E402
+from gac_jax.config import apply_overrides, load_config  # noqa: E402
+from gac_jax.export.networks import ExportError, depth_graph, detector_graph  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+RTOL = 1e-4
+
+
+def perturb(variables: dict, seed: int = 0) -> dict:
+    """Random but well-conditioned weights: noisy kernels/biases/BN, positive variances."""
+    rng = np.random.default_rng(seed)
+
+    def f(path, x):
+        x = np.asarray(x, np.float32)
+        name = jax.tree_util.keystr(path)
+        if "'var'" in name:
+            return (np.abs(x) + rng.uniform(0.5, 1.5, x.shape)).astype(np.float32)
+        if "alpha" in name:
+            return np.full_like(x, 0.7)
+        # kernels He-scaled, so activations neither vanish nor explode
+        scale = (2.0 / max(np.prod(x.shape[:-1]), 1)) ** 0.5 if "kernel" in name else 0.2
+        return (x + rng.normal(0.0, scale, x.shape)).astype(np.float32)
+
+    return jax.tree_util.tree_map_with_path(f, variables)
+
+
+def projections(batch: int, height: int, width: int, scale: float = 1.0) -> np.ndarray:
+    """(B,3,4) KITTI-like projections, different per image; ``scale`` != 1 also moves the
+    principal point down by a third of the image."""
+    P = np.array(
+        [[700.0, 0, width / 2, 45.0], [0, 700.0, height / 4, -0.3], [0, 0, 1, 0.005]], np.float64
+    )
+    out = []
+    for b in range(batch):
+        Pb = P.copy()
+        Pb[:2] *= scale * (1 + 0.15 * b)
+        Pb[1, 2] += 3.0 * b + (height / 3 if scale != 1.0 else 0.0)
+        out.append(Pb)
+    return np.stack(out).astype(np.float32)
+
+
+def session(model) -> ort.InferenceSession:
+    return ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+
+
+def run(sess, images, P2) -> dict:
+    names = [o.name for o in sess.get_outputs()]
+    return dict(zip(names, sess.run(None, {"images": images, "P2": P2}), strict=True))
+
+
+def rel_error(a, b) -> float:
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-12))
+
+
+def random_variables(model, config, init) -> dict:
+    """Perturbed weights in the shapes of ``init`` (traced abstractly: nothing is compiled)."""
+    shapes = jax.eval_shape(lambda: init(model, config, 0))
+    zeros = jax.tree.map(lambda s: np.zeros(s.shape, np.float32), shapes)
+    return perturb(zeros)
+
+
+@functools.cache
+def case(kind: str, variant: str):
+    """``(model, variables, image size, ONNX session, jitted apply)`` of a variant (cached)."""
+    spec, *overrides = (DETECTOR_VARIANTS if kind == "detect3d" else DEPTH_VARIANTS)[variant]
+    config = load_config(str(REPO / "configs" / spec))
+    apply_overrides(config, list(overrides))
+    d = config.data
+    if kind == "detect3d":
+        layout = det_builders.anchor_layout(config)
+        model = det_builders.build_model(config, layout.anchors_per_cell)
+        variables = random_variables(model, config, det_builders.init_variables)
+        size, graph = (d.height, d.width), detector_graph
+    else:
+        model = depth_builders.build_model(config, 2.3)
+        variables = random_variables(model, config, depth_builders.init_variables)
+        size, graph = (d.height, d.eval_width), depth_graph
+    sess = session(graph(model, variables, size, 17))
+    apply = jax.jit(lambda v, x, P: model.apply(v, x, P, train=False))
+    return model, variables, size, sess, apply
+
+
+def inputs(size: tuple[int, int], scale: float = 1.0):
+    images = np.random.default_rng(0).normal(size=(2, *size, 3)).astype(np.float32)
+    return images, projections(2, *size, scale=scale)
+
+
+DETECTOR_VARIANTS = {
+    "gac": ("detect3d_default.py:tiny",),
+    "conv": ("detect3d_default.py:tiny,conv",),
+    "disparity_conv": ("detect3d_default.py:tiny", "model.regression_block=disparity_conv"),
+    "bottleneck_reference_v1": (
+        "detect3d_default.py:tiny",
+        "model.backbone_depth=50",
+        "model.gac.offset_formula=reference_v1",
+    ),
+}
+DEPTH_VARIANTS = {
+    "gac": ("depth_default.py:tiny",),
+    "base": ("depth_default.py:tiny,base",),
+    "reference_intrinsics": ("depth_default.py:tiny", "model.intrinsics_mode=reference"),
+}
+
+
+@pytest.mark.parametrize("variant", list(DETECTOR_VARIANTS))
+def test_detector_export_matches_jit(variant):
+    """Batch 2 against the jitted model, and batch 1 against its first image (the Flax model
+    in eval mode treats images independently), so one compile serves both."""
+    model, variables, size, sess, apply = case("detect3d", variant)
+    images, P2 = inputs(size)
+    ref = apply(variables, images, P2)
+    for batch in (2, 1):
+        out = run(sess, images[:batch], P2[:batch])
+        assert set(out) == {"cls_logits", "sign_logits", "reg"}
+        for key, value in out.items():
+            assert value.shape == ref[key][:batch].shape, key
+            assert rel_error(value, ref[key][:batch]) < RTOL, (variant, batch, key)
+
+
+@pytest.mark.parametrize("variant", list(DEPTH_VARIANTS))
+def test_depth_export_matches_jit(variant):
+    model, variables, size, sess, apply = case("depth", variant)
+    images, P2 = inputs(size)
+    ref = apply(variables, images, P2)
+    for batch in (2, 1):
+        out = run(sess, images[:batch], P2[:batch])
+        assert out["log_depth"].shape == (batch, *size)
+        assert rel_error(out["log_depth"], ref["log_depth"]["scale_1"][:batch]) < RTOL
+        assert rel_error(out["depth"], ref["depth"][:batch]) < RTOL
+
+
+@pytest.mark.parametrize("kind", ["detect3d", "depth"])
+def test_p2_is_a_live_input(kind):
+    """Another calibration changes the exported outputs exactly as it changes the Flax ones."""
+    model, variables, size, sess, apply = case(kind, "gac")
+    images, Pa = inputs(size)
+    _, Pb = inputs(size, scale=1.4)
+    key = "reg" if kind == "detect3d" else "log_depth"
+
+    def pick(out):
+        return out[key] if kind == "detect3d" or key not in out else out[key]["scale_1"]
+
+    ref_change = np.asarray(pick(apply(variables, images, Pb))) - np.asarray(
+        pick(apply(variables, images, Pa))
+    )
+    out_change = run(sess, images, Pb)[key] - run(sess, images, Pa)[key]
+    # the calibration matters (far above float32 noise, ~1e-6 here) ...
+    assert np.abs(ref_change).max() > 3e-4
+    assert rel_error(out_change, ref_change) < 1e-2  # ... and the same in both
+
+
+def test_deformable_decoder_is_refused():
+    config = load_config(str(REPO / "configs" / "depth_default.py:tiny"))
+    apply_overrides(config, ["model.decoder_conv=deformable"])
+    model = depth_builders.build_model(config, 2.3)
+    variables = random_variables(model, config, depth_builders.init_variables)
+    with pytest.raises(ExportError, match="deformable.*cannot be exported"):
+        depth_graph(model, variables, (config.data.height, config.data.eval_width), 17)
