@@ -75,6 +75,8 @@ def test_onnxruntime_writes_the_jax_result_files(onnx_run):
     trainer = wd / "results" / "step_2"
     assert_same_results(wd / "eval" / "labeled_step2_onnxruntime_f32" / "data", trainer / "data")
     reference = json.loads((trainer / "metrics.json").read_text())["metrics"]
+    metrics = dict(metrics)
+    assert set(metrics.pop("_meta")["min_overlap"]) == set(reference["ap40"])  # --json's overlaps
     assert flatten(metrics).keys() == flatten(reference).keys()
     for key, value in flatten(reference).items():
         np.testing.assert_allclose(flatten(metrics)[key], value, atol=0.02, err_msg=key)
