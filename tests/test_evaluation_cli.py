@@ -52,6 +52,24 @@ def assert_one_line_error(code, err, *needles):
         assert needle in lines[0], (needle, lines[0])
 
 
+def test_missing_result_files_are_counted_and_require_all_refuses(detection_dirs, capsys):
+    labels, results, ids = detection_dirs
+    (results / f"{ids[1]}.txt").unlink()
+    argv = ["--task", "detect3d", "--label-dir", labels, "--result-dir", results]
+    code, out, err = run_main(argv, capsys)
+    assert code == 0, err
+    assert f"2 of {len(ids)} frames have no result file" in out
+    assert cli.missing_result_ids(results, ids) == ids[:2]
+    code, out, err = run_main([*argv, "--require-all"], capsys)
+    assert_one_line_error(code, err, str(results), f"2 of {len(ids)} frames", "--require-all")
+    assert "AP|R40" not in out
+    # Every result file present: --require-all scores as usual.
+    for i in ids[:2]:
+        (results / f"{i}.txt").write_text("")
+    code, out, err = run_main([*argv, "--require-all"], capsys)
+    assert code == 0 and f"0 of {len(ids)} frames have no result file" in out, err
+
+
 def test_detect3d_json_schema_and_values(detection_dirs, tmp_path, capsys):
     labels, results, ids = detection_dirs
     out_json = tmp_path / "out" / "ap.json"
@@ -60,7 +78,8 @@ def test_detect3d_json_schema_and_values(detection_dirs, tmp_path, capsys):
         capsys,
     )
     assert code == 0, err
-    assert "AP|R40" in out and "13 frames" in out
+    assert "AP|R40" in out and f"{len(ids)} frames" in out
+    assert f"1 of {len(ids)} frames have no result file" in out and f"{ids[0]}.txt" in out
     data = json.loads(out_json.read_text())
     assert set(data) == {"ap11", "ap40"}
     for ap in data.values():
