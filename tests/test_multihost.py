@@ -1,6 +1,6 @@
 """Multi-process training: 2 processes on localhost (CPU, gloo) through ``train.py``.
 
-The detection runs are the ``:tiny`` detector on the 13 real KITTI frames with a global
+The detection runs are the ``:tiny`` detector on the vendored real KITTI frames with a global
 batch of 4 and plain SGD (patched in by the worker below: the update is linear
 in the gradient, so parameters of different process counts compare to float
 tolerance; Adam's m / sqrt(v) turns float-noise gradients of near-unused

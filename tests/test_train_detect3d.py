@@ -1,7 +1,7 @@
 """The detection trainer: compile-once step, multi-device equivalence, kill/resume, NaN stop.
 
 Runs the ``:tiny`` default config (ResNet-18 of width 8, 64x256 input) on the
-13 real KITTI frames of ``../shared``.
+real KITTI frames vendored in ``tests/data/kitti``.
 """
 
 from __future__ import annotations
