@@ -248,12 +248,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
                 stats = progress.update(step, float(m["loss"]), {"si_1": float(m["si/scale_1"])})
                 lr = float(schedule(step - 1))
                 writer.write(step, lr=lr, **{k: float(v) for k, v in m.items()}, **stats)
-            if multiprocess.preemption_requested(step):  # SIGTERM to any process: all stop here
+            if multiprocess.preemption_requested(step):  # SIGTERM/SIGINT: all stop here
                 save(step)
-                raise multiprocess.PreemptedError(
-                    f"stopped at step {step} on a preemption notice (SIGTERM); checkpoint saved "
-                    f"in {checkpoints.directory}. Run the same command again to resume."
-                )
+                raise multiprocess.PreemptedError(step)
             if step % config.train.checkpoint_every == 0 and step < total_steps:
                 save(step)
             every = config.train.eval_every

@@ -204,12 +204,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
                     {"cls": float(m["cls_loss"]), "reg": float(m["reg_loss"])},
                 )
                 writer.write(step, lr=lr, **{k: float(v) for k, v in m.items()}, **stats)
-            if multiprocess.preemption_requested(step):  # SIGTERM to any process: all stop here
+            if multiprocess.preemption_requested(step):  # SIGTERM/SIGINT: all stop here
                 save(step)
-                raise multiprocess.PreemptedError(
-                    f"stopped at step {step} on a preemption notice (SIGTERM); checkpoint saved "
-                    f"in {checkpoints.directory}. Run the same command again to resume."
-                )
+                raise multiprocess.PreemptedError(step)
             if step % config.train.checkpoint_every == 0 and step < total_steps:
                 save(step)
             if (
