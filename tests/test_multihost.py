@@ -257,7 +257,7 @@ def test_two_processes_train_like_one_survive_a_kill_and_resume_across_counts(
     with Checkpoints(workdir) as ckpts:
         stopped = ckpts.latest_step()
     assert last < stopped < TOTAL_STEPS, run.tails()
-    assert f"stopped at step {stopped} on a preemption notice" in run.log(0)
+    assert f"stopped at step {stopped}, checkpoint saved; run the same command to resume" in run.log(0)
 
     # Two processes made the same updates as one on the same global batches: every
     # logged loss (one history despite the kill) and the parameters where they stopped.

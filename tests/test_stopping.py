@@ -113,6 +113,7 @@ def test_sigterm_saves_and_the_rerun_matches_an_uninterrupted_run(kitti_object_r
     lines = [line for line in out.splitlines() if line.startswith("stopped at")]
     assert lines == [f"stopped at step {at}, checkpoint saved; run the same command to resume"]
     assert "SIGTERM received" in out and "Traceback" not in out
+    assert not (stopped / "tensorboard").exists()  # log.tensorboard=false
 
     rerun = start(stopped, kitti_object_root, steps)
     out = rerun.communicate(timeout=300)[0].decode()

@@ -205,7 +205,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     # Step and evaluator.
     train_step = make_train_step(model, tx, loss_options(config), mesh, state_sharding)
     evaluator = make_evaluator(config, eval_source(config, root)) if is_main else None
-    writer = MetricsWriter(workdir, enabled=is_main, resume_step=start_step)
+    writer = MetricsWriter(
+        workdir, is_main, resume_step=start_step, tensorboard=config.log.tensorboard
+    )
     progress = Progress(total_steps, start_step, config.data.batch_size, enabled=is_main)
 
     def save(step: int) -> None:
@@ -225,6 +227,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
         if out["metrics"]:
             print(format_depth_table(out["metrics"], out["num_scored"]), end="", flush=True)
         writer.write(step, kind="eval", **out)
+        writer.pictures(step, (out_dir / "pictures").glob("*.png"))
         with atomic_write(out_dir / "metrics.json") as f:
             json.dump(out, f, indent=2)
         return out
@@ -268,8 +271,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     finally:
         watchdog.close()
         progress.close()
+        writer.flush()
     result = None
     if config.train.eval_at_end:
         result = multiprocess.run_on_main(functools.partial(run_evaluation, step), "eval_final")
     checkpoints.close()
+    writer.close()
     return result or {}

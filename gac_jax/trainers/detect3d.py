@@ -158,7 +158,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
         model, tx, constants, loss_config(config), config, mesh, state_sharding
     )
     evaluator = make_evaluator(config, model, constants, root, config.data.num_workers)
-    writer = MetricsWriter(workdir, enabled=is_main, resume_step=start_step)
+    writer = MetricsWriter(
+        workdir, is_main, resume_step=start_step, tensorboard=config.log.tensorboard
+    )
     progress = Progress(total_steps, start_step, config.data.batch_size, enabled=is_main)
 
     def save(step: int) -> None:
@@ -176,9 +178,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
             writer.write(step, kind="eval", **out)
             with open(workdir / "results" / f"step_{step}" / "metrics.json", "w") as f:
                 json.dump(out, f, indent=2)
-            save_evaluation_pictures(
+            pictures = save_evaluation_pictures(
                 evaluator.source, result_dir, config.eval.num_pictures, classes
             )
+            writer.pictures(step, pictures)
         return out
 
     # Loop. In a multi-process run the watchdog stops a process whose peers hang.
@@ -227,8 +230,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     finally:
         watchdog.close()
         progress.close()
+        writer.flush()
     result = None
     if config.train.eval_at_end:
         result = multiprocess.run_on_main(functools.partial(run_evaluation, step), "eval_final")
     checkpoints.close()
+    writer.close()
     return result or {}
