@@ -92,6 +92,8 @@ def main(argv=None) -> int:
     try:
         code = _run(args)
     except multiprocess.PeerLostError as e:
+        if multi:  # one line, even if a watcher thread reports the same loss meanwhile
+            multiprocess.exit_once(f"error: {e}", multiprocess.EXIT_PEER_LOST)
         print(f"error: {e}", file=sys.stderr)
         code = multiprocess.EXIT_PEER_LOST
     except multiprocess.PreemptedError as e:

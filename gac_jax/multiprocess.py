@@ -73,11 +73,14 @@ class DistributedSettings:
       wait_timeout: longest time processes wait at a barrier for work that
         process 0 does alone (dataset generation, anchor priors, evaluation).
       heartbeat_timeout: after this long without heartbeats JAX declares a process dead.
+      peer_lost_hint: what the peer-lost error tells the user to do (the trainers name
+        their checkpoint folder).
     """
 
     step_timeout: float = 900.0
     wait_timeout: float = 7200.0
     heartbeat_timeout: int = 100
+    peer_lost_hint: str = "Restart all processes to resume from the last checkpoint."
 
 
 settings = DistributedSettings()
@@ -159,15 +162,88 @@ def initialize_distributed(
         if num_processes == 1:
             return False
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    jax.distributed.initialize(
-        coordinator_address=None if auto else coordinator,
-        num_processes=num_processes,
-        process_id=process_id,
-        initialization_timeout=initialization_timeout,
-        heartbeat_timeout_seconds=settings.heartbeat_timeout,
-        shutdown_timeout_seconds=shutdown_timeout,
-    )
+    with _peer_loss_reported_cleanly():
+        jax.distributed.initialize(
+            coordinator_address=None if auto else coordinator,
+            num_processes=num_processes,
+            process_id=process_id,
+            initialization_timeout=initialization_timeout,
+            heartbeat_timeout_seconds=settings.heartbeat_timeout,
+            shutdown_timeout_seconds=shutdown_timeout,
+        )
     return jax.process_count() > 1
+
+
+@contextlib.contextmanager
+def _peer_loss_reported_cleanly() -> Iterator[None]:
+    """Inside: JAX's distributed client reports a dead peer through :func:`exit_peer_lost`.
+
+    When the coordination service declares a process dead (no heartbeat for
+    ``heartbeat_timeout`` s) every other process's client calls its
+    ``missed_heartbeat_callback``; JAX's default aborts the process with a C++
+    "Check failure" stack trace (exit 134), e.g. while orbax waits at a checkpoint
+    barrier. The callback installed here prints the one-line peer-lost error and
+    exits with :data:`EXIT_PEER_LOST` instead, as a failed collective does.
+    (``jax.distributed.initialize`` has no parameter for it: the client factory is
+    wrapped while it runs; if that private hook moves, JAX's default stays.)
+    """
+    from jax._src import distributed
+
+    lib = getattr(distributed, "_jax", None)
+    factory = getattr(lib, "get_distributed_runtime_client", None)
+    if factory is None:
+        yield
+        return
+
+    def client_with_callback(*args, **kwargs):
+        kwargs.setdefault("missed_heartbeat_callback", _on_missed_heartbeat)
+        return factory(*args, **kwargs)
+
+    lib.get_distributed_runtime_client = client_with_callback
+    try:
+        yield
+    finally:
+        lib.get_distributed_runtime_client = factory
+
+
+def _on_missed_heartbeat(*status) -> None:
+    exit_peer_lost(str(status[0]) if status else "the coordination service reported an error")
+
+
+_exit_lock = threading.Lock()
+
+
+def exit_peer_lost(detail: str, hint: str | None = None) -> None:
+    """Prints the one-line peer-lost error and ends this process with :data:`EXIT_PEER_LOST`.
+
+    For threads that notice a dead peer while the main thread waits (a checkpoint
+    barrier, the coordination service's error callback).
+    """
+    hint = settings.peer_lost_hint if hint is None else hint
+    first = detail.strip().splitlines()[0][:300] if detail.strip() else "no detail"
+    exit_once(
+        f"error: {_where_safe()}: lost contact with another process ({first}): it died "
+        f"or hung. Stopping instead of waiting. {hint}".strip(),
+        EXIT_PEER_LOST,
+    )
+
+
+def exit_once(message: str, code: int) -> None:
+    """Prints ``message`` to stderr and ends the process with ``code`` at once, without
+    Python's shutdown (peers may be dead or stuck in a collective with this process).
+    When several threads get here, only the first one prints."""
+    if _exit_lock.acquire(blocking=False):
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+        _say(message)
+    os._exit(code)
+
+
+def _where_safe() -> str:
+    try:
+        return _where()
+    except Exception:  # noqa: BLE001 - the backend may be unusable by now
+        return "this process"
 
 
 def is_main_process() -> bool:

@@ -186,6 +186,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
 
     # Loop. In a multi-process run the watchdog stops a process whose peers hang.
     hint = f"Restart all processes to resume from the last checkpoint in {checkpoints.directory}."
+    multiprocess.settings.peer_lost_hint = hint  # also for losses seen outside a step
     watchdog = multiprocess.ProgressWatchdog(hint=hint)
     compile_t0 = time.perf_counter()
     step = start_step
