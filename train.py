@@ -129,6 +129,7 @@ def _run(args: argparse.Namespace) -> int:
     workdir = args.workdir or str(
         Path("workdirs") / f"{args.task}_{resolve_config_path(spec)[0].stem}"
     )
+    _print_devices()
     try:
         if args.task == "detect3d":
             from gac_jax.trainers import detect3d
@@ -142,6 +143,20 @@ def _run(args: argparse.Namespace) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     return 0
+
+
+def _print_devices() -> None:
+    """One start-up line naming JAX's backend and devices (e.g. ``gpu: 1 x NVIDIA H200``)."""
+    import jax
+
+    devices = jax.devices()
+    if jax.process_index() == 0:
+        kinds = sorted({d.device_kind for d in devices})
+        print(
+            f"JAX {jax.__version__}, backend {jax.default_backend()}: {len(devices)} device(s) "
+            f"({', '.join(kinds)}) in {jax.process_count()} process(es)",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":
