@@ -40,9 +40,10 @@ class Checkpoints:
         args = ocp.args.Composite(
             state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(dict(meta or {}, step=step))
         )
-        self._manager.save(step, args=args, force=True)
-        if wait:
-            self._manager.wait_until_finished()
+        with multiprocess.watch_peers(f"while checkpoint {step} was saved"):
+            self._manager.save(step, args=args, force=True)
+            if wait:
+                self._manager.wait_until_finished()
 
     def restore(self, abstract_state: Any, step: int | None = None) -> tuple[Any, dict]:
         """Restores ``step`` (default: latest) into the shardings of ``abstract_state``."""
@@ -140,17 +141,18 @@ class Checkpoints:
 def _barrier_or_exit():
     """orbax's cross-process barrier, ending the process cleanly when a peer is lost there.
 
-    The asynchronous save waits at such barriers in a background thread; when a peer
-    died meanwhile the barrier fails after ``heartbeat_timeout`` and orbax would log a
-    traceback before the main thread sees it. Here the peer-lost error is reported at
-    once, in one line, with the exit status of a peer lost during a step. The
+    The asynchronous save waits at such barriers in a background thread; a peer that
+    died meanwhile is noticed by :func:`gac_jax.multiprocess.watch_peers` (half the
+    heartbeat timeout, before JAX's own detection aborts the process) or by the failed
+    barrier, and reported in one line with the exit status of a peer lost during a step. The
     unfinished checkpoint stays a temporary folder that is never restored.
     """
     barrier = ocp.multihost.get_barrier_sync_fn()
 
     def barrier_sync_fn(*, key: str, timeout_ms: int) -> None:
         try:
-            barrier(key=key, timeout_ms=timeout_ms)
+            with multiprocess.watch_peers(f"at checkpoint barrier {key}"):
+                barrier(key=key, timeout_ms=timeout_ms)
         except Exception as e:
             if multiprocess.is_peer_failure(e):
                 multiprocess.exit_peer_lost(f"checkpoint barrier {key}: {e}")

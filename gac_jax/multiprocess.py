@@ -162,52 +162,89 @@ def initialize_distributed(
         if num_processes == 1:
             return False
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    with _peer_loss_reported_cleanly():
-        jax.distributed.initialize(
-            coordinator_address=None if auto else coordinator,
-            num_processes=num_processes,
-            process_id=process_id,
-            initialization_timeout=initialization_timeout,
-            heartbeat_timeout_seconds=settings.heartbeat_timeout,
-            shutdown_timeout_seconds=shutdown_timeout,
-        )
-    return jax.process_count() > 1
+    jax.distributed.initialize(
+        coordinator_address=None if auto else coordinator,
+        num_processes=num_processes,
+        process_id=process_id,
+        initialization_timeout=initialization_timeout,
+        heartbeat_timeout_seconds=settings.heartbeat_timeout,
+        shutdown_timeout_seconds=shutdown_timeout,
+    )
+    multi = jax.process_count() > 1
+    if multi:
+        _start_beacon()
+    return multi
 
 
-@contextlib.contextmanager
-def _peer_loss_reported_cleanly() -> Iterator[None]:
-    """Inside: JAX's distributed client reports a dead peer through :func:`exit_peer_lost`.
+# ----------------------------------------------------------------------------- liveness
 
-    When the coordination service declares a process dead (no heartbeat for
-    ``heartbeat_timeout`` s) every other process's client calls its
-    ``missed_heartbeat_callback``; JAX's default aborts the process with a C++
-    "Check failure" stack trace (exit 134), e.g. while orbax waits at a checkpoint
-    barrier. The callback installed here prints the one-line peer-lost error and
-    exits with :data:`EXIT_PEER_LOST` instead, as a failed collective does.
-    (``jax.distributed.initialize`` has no parameter for it: the client factory is
-    wrapped while it runs; if that private hook moves, JAX's default stays.)
+BEACON_S = 1.0  # how often each process signals that it is alive (coordination service)
+
+
+def _beacon_key(process_id: int) -> str:
+    return f"gac_jax/alive/{process_id}"
+
+
+def _start_beacon() -> None:
+    """Every process increments its own counter in the coordination service every second.
+
+    :func:`watch_peers` reads the counters: a peer whose counter stops moving is dead
+    (or frozen) long before JAX's own heartbeat timeout ends the survivors with a C++
+    abort.
     """
     from jax._src import distributed
 
-    lib = getattr(distributed, "_jax", None)
-    factory = getattr(lib, "get_distributed_runtime_client", None)
-    if factory is None:
+    client, me = distributed.global_state.client, distributed.global_state.process_id
+
+    def beat() -> None:
+        while True:
+            with contextlib.suppress(Exception):  # the service may be gone: watchers decide
+                client.key_value_increment(_beacon_key(me), 1)
+            time.sleep(BEACON_S)
+
+    threading.Thread(target=beat, name="gac-beacon", daemon=True).start()
+
+
+@contextlib.contextmanager
+def watch_peers(what: str, stall_s: float | None = None, poll_s: float = 0.5) -> Iterator[None]:
+    """Inside: a peer that stops signalling for ``stall_s`` seconds (default: half the
+    heartbeat timeout) ends this process with the one-line peer-lost error (exit 3).
+
+    For waits that no collective interrupts when a peer dies (orbax's checkpoint
+    barriers): JAX would notice only after ``heartbeat_timeout`` and then abort with a
+    C++ stack trace. Single process: nothing happens.
+    """
+    client = _client()
+    if client is None or jax.process_count() == 1:
         yield
         return
+    stall_s = settings.heartbeat_timeout / 2 if stall_s is None else stall_s
+    me, n = jax.process_index(), jax.process_count()
+    done = threading.Event()
 
-    def client_with_callback(*args, **kwargs):
-        kwargs.setdefault("missed_heartbeat_callback", _on_missed_heartbeat)
-        return factory(*args, **kwargs)
+    def watch() -> None:
+        seen: dict[int, tuple[str, float]] = {}
+        while not done.wait(poll_s):
+            now = time.monotonic()
+            for peer in range(n):
+                if peer == me:
+                    continue
+                try:
+                    value = client.key_value_try_get(_beacon_key(peer))
+                except Exception:  # noqa: BLE001 - not there yet, or the service is gone
+                    value = None
+                last = seen.get(peer)
+                if last is None or value != last[0]:
+                    seen[peer] = (value, now)
+                elif now - last[1] > stall_s and not done.is_set():
+                    exit_peer_lost(f"process {peer} gave no sign of life for {stall_s:g} s {what}")
 
-    lib.get_distributed_runtime_client = client_with_callback
+    thread = threading.Thread(target=watch, name="gac-peer-watch", daemon=True)
+    thread.start()
     try:
         yield
     finally:
-        lib.get_distributed_runtime_client = factory
-
-
-def _on_missed_heartbeat(*status) -> None:
-    exit_peer_lost(str(status[0]) if status else "the coordination service reported an error")
+        done.set()
 
 
 _exit_lock = threading.Lock()
@@ -217,7 +254,7 @@ def exit_peer_lost(detail: str, hint: str | None = None) -> None:
     """Prints the one-line peer-lost error and ends this process with :data:`EXIT_PEER_LOST`.
 
     For threads that notice a dead peer while the main thread waits (a checkpoint
-    barrier, the coordination service's error callback).
+    barrier, :func:`watch_peers`).
     """
     hint = settings.peer_lost_hint if hint is None else hint
     first = detail.strip().splitlines()[0][:300] if detail.strip() else "no detail"
