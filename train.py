@@ -7,8 +7,12 @@
 
 Multi-host: add ``--coordinator HOST:PORT --num-processes N --process-id I`` on every host
 (or set GAC_COORDINATOR, GAC_NUM_PROCESSES, GAC_PROCESS_ID; ``--coordinator auto`` detects
-SLURM / Open MPI). See docs/multihost.md. Exit codes: 0 done, 1 crash, 2 bad config or data,
-3 another process died or hung, 75 stopped on SIGTERM after a checkpoint (run again to resume).
+SLURM / Open MPI). See docs/multihost.md.
+
+SIGTERM or Ctrl-C (SIGINT): the run finishes its current step, saves a checkpoint, prints
+"stopped at step N, checkpoint saved; run the same command to resume" and exits with 75;
+a second Ctrl-C stops at once (130, no checkpoint). Exit codes: 0 done, 1 crash, 2 bad config
+or data, 3 another process died or hung, 75 stopped after a checkpoint (run again to resume).
 """
 
 from __future__ import annotations
@@ -17,6 +21,11 @@ import argparse
 import os
 import sys
 import traceback
+
+if __name__ == "__mp_main__":  # a loader worker spawned by this trainer: never outlive it
+    from gac_jax.data.worker_lifetime import guard_spawned_child
+
+    guard_spawned_child()
 
 DEFAULT_CONFIGS = {"detect3d": "configs/detect3d_default.py", "depth": "configs/depth_default.py"}
 
@@ -59,6 +68,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    from gac_jax.data.worker_lifetime import mark_parent
+
+    mark_parent()  # helper processes (loader workers) exit when this process dies
     from gac_jax.cpu_backend import apply_default_xla_flags
 
     apply_default_xla_flags()  # before JAX starts its backend
@@ -76,9 +88,12 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    multiprocess.install_stop_handlers()
     try:
         code = _run(args)
     except multiprocess.PeerLostError as e:
+        if multi:  # one line, even if a watcher thread reports the same loss meanwhile
+            multiprocess.exit_once(f"error: {e}", multiprocess.EXIT_PEER_LOST)
         print(f"error: {e}", file=sys.stderr)
         code = multiprocess.EXIT_PEER_LOST
     except multiprocess.PreemptedError as e:
@@ -114,6 +129,7 @@ def _run(args: argparse.Namespace) -> int:
     workdir = args.workdir or str(
         Path("workdirs") / f"{args.task}_{resolve_config_path(spec)[0].stem}"
     )
+    _print_devices()
     try:
         if args.task == "detect3d":
             from gac_jax.trainers import detect3d
@@ -127,6 +143,20 @@ def _run(args: argparse.Namespace) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     return 0
+
+
+def _print_devices() -> None:
+    """One start-up line naming JAX's backend and devices (e.g. ``gpu: 1 x NVIDIA H200``)."""
+    import jax
+
+    devices = jax.devices()
+    if jax.process_index() == 0:
+        kinds = sorted({d.device_kind for d in devices})
+        print(
+            f"JAX {jax.__version__}, backend {jax.default_backend()}: {len(devices)} device(s) "
+            f"({', '.join(kinds)}) in {jax.process_count()} process(es)",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

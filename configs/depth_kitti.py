@@ -110,6 +110,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.eval.num_pictures = 4  # val frames drawn at each evaluation
     c.eval.picture_max_depth = 80.0  # far end of the pictures' colour scale (m)
 
+    c.log = ml_collections.ConfigDict()
+    # TensorBoard event files in WORKDIR/tensorboard beside metrics.jsonl (scalars of every
+    # logged step and evaluation, evaluation pictures): tensorboard --logdir workdirs
+    c.log.tensorboard = True
+
     variants = set((arg or "").split(",")) - {""}
     if "base" in variants:
         c.model.use_gac = False

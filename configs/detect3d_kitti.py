@@ -118,6 +118,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.eval.top_k = 4096
     c.eval.num_pictures = 4  # val frames drawn at each evaluation
 
+    c.log = ml_collections.ConfigDict()
+    # TensorBoard event files in WORKDIR/tensorboard beside metrics.jsonl (scalars of every
+    # logged step and evaluation, evaluation pictures): tensorboard --logdir workdirs
+    c.log.tensorboard = True
+
     if arg == "multiclass":
         c.data.classes = ("Car", "Pedestrian", "Cyclist")
         c.anchors.ratios = (0.5, 1.0, 2.0)

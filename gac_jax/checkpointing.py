@@ -17,6 +17,8 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
+from gac_jax import multiprocess
+
 VARIABLE_COLLECTIONS = ("params", "batch_stats")
 
 
@@ -24,6 +26,8 @@ class Checkpoints:
     def __init__(self, workdir: str | os.PathLike, max_to_keep: int = 3):
         self.directory = Path(workdir).resolve() / "checkpoints"
         options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True)
+        if jax.process_count() > 1:
+            options.async_options = ocp.AsyncOptions(barrier_sync_fn=_barrier_or_exit())
         self._manager = ocp.CheckpointManager(self.directory, options=options)
 
     def latest_step(self) -> int | None:
@@ -36,9 +40,10 @@ class Checkpoints:
         args = ocp.args.Composite(
             state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(dict(meta or {}, step=step))
         )
-        self._manager.save(step, args=args, force=True)
-        if wait:
-            self._manager.wait_until_finished()
+        with multiprocess.watch_peers(f"while checkpoint {step} was saved"):
+            self._manager.save(step, args=args, force=True)
+            if wait:
+                self._manager.wait_until_finished()
 
     def restore(self, abstract_state: Any, step: int | None = None) -> tuple[Any, dict]:
         """Restores ``step`` (default: latest) into the shardings of ``abstract_state``."""
@@ -131,6 +136,29 @@ class Checkpoints:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _barrier_or_exit():
+    """orbax's cross-process barrier, ending the process cleanly when a peer is lost there.
+
+    The asynchronous save waits at such barriers in a background thread; a peer that
+    died meanwhile is noticed by :func:`gac_jax.multiprocess.watch_peers` (half the
+    heartbeat timeout, before JAX's own detection aborts the process) or by the failed
+    barrier, and reported in one line with the exit status of a peer lost during a step. The
+    unfinished checkpoint stays a temporary folder that is never restored.
+    """
+    barrier = ocp.multihost.get_barrier_sync_fn()
+
+    def barrier_sync_fn(*, key: str, timeout_ms: int) -> None:
+        try:
+            with multiprocess.watch_peers(f"at checkpoint barrier {key}"):
+                barrier(key=key, timeout_ms=timeout_ms)
+        except Exception as e:
+            if multiprocess.is_peer_failure(e):
+                multiprocess.exit_peer_lost(f"checkpoint barrier {key}: {e}")
+            raise
+
+    return barrier_sync_fn
 
 
 def _abstract(x):

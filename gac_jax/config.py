@@ -87,6 +87,8 @@ def apply_overrides(config: ml_collections.ConfigDict, overrides: list[str]) -> 
         old = node[leaf]
         if isinstance(old, tuple) and isinstance(value, list):
             value = tuple(value)
+        if isinstance(old, bool) and isinstance(value, str) and value.lower() in ("true", "false"):
+            value = value.lower() == "true"  # shell spelling: log.tensorboard=false
         if isinstance(old, float) and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
         try:

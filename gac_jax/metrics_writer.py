@@ -1,4 +1,5 @@
-"""Training telemetry: a JSON-lines metrics file and a progress line with loss, images/s and ETA.
+"""Training telemetry: a JSON-lines metrics file (and the same numbers as TensorBoard event
+files) and a progress line with loss, images/s and ETA.
 
 Only process 0 writes (``enabled=False`` elsewhere). Device values are
 fetched by the caller at log steps only.
@@ -24,15 +25,28 @@ class MetricsWriter:
     On resume from ``resume_step`` the lines of later steps (written by the
     interrupted run after its last checkpoint) are dropped, so the file
     describes exactly one history.
+
+    With ``tensorboard=True`` every number written also goes to TensorBoard event
+    files in ``WORKDIR/tensorboard`` (tag ``<kind>/<key>``, nested keys joined by
+    ``/``), and :meth:`pictures` adds evaluation pictures there.
     """
 
     def __init__(
-        self, workdir: str | os.PathLike, enabled: bool = True, resume_step: int | None = None
+        self,
+        workdir: str | os.PathLike,
+        enabled: bool = True,
+        resume_step: int | None = None,
+        tensorboard: bool = False,
     ):
         self.path = Path(workdir) / "metrics.jsonl"
         self.enabled = enabled
+        self.tensorboard = None
         if not enabled:
             return
+        if tensorboard:
+            from gac_jax.tensorboard_writer import TensorBoardWriter
+
+            self.tensorboard = TensorBoardWriter(Path(workdir) / "tensorboard", resume_step)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if self.path.exists():
             keep = []
@@ -54,6 +68,29 @@ class MetricsWriter:
         with open(self.path, "a") as f:
             f.write(json.dumps(record) + "\n")
             f.flush()
+        if self.tensorboard is not None:
+            from gac_jax.tensorboard_writer import flatten_scalars
+
+            self.tensorboard.scalars(step, flatten_scalars(values, kind))
+            if kind != "train":  # evaluations are rare: visible at once
+                self.tensorboard.flush()
+
+    def pictures(self, step: int, paths, tag: str = "eval/pictures") -> None:
+        """Image files (evaluation pictures) as TensorBoard images ``<tag>/<file stem>``."""
+        if self.tensorboard is None:
+            return
+        for path in sorted(Path(p) for p in paths):
+            self.tensorboard.image_file(step, f"{tag}/{path.stem}", path)
+        self.tensorboard.flush()
+
+    def flush(self) -> None:
+        if self.tensorboard is not None:
+            self.tensorboard.flush()
+
+    def close(self) -> None:
+        if self.tensorboard is not None:
+            self.tensorboard.close()
+            self.tensorboard = None
 
 
 def _jsonable(v):

@@ -12,8 +12,10 @@ never leaves the others hanging (the data-parallel step itself is
   completed for ``step_timeout`` seconds (a peer that hangs while alive);
   :func:`raise_if_peer_failure` turns the collective / coordination errors seen
   when a peer dies into a clear :class:`PeerLostError`;
-* :func:`preemption_requested`: SIGTERM to any process (the JAX preemption
-  service) makes all of them stop at the same step after a checkpoint.
+* :func:`install_stop_handlers` and :func:`preemption_requested`: SIGTERM or
+  SIGINT (Ctrl-C) to any process makes all of them stop at the same step after a
+  checkpoint (across processes through the JAX preemption service); a second
+  SIGINT exits at once.
 
 A dead peer is noticed at once by the surviving processes' next collective
 (the CPU/gloo or GPU transport reports the closed connection) or, when a
@@ -30,6 +32,7 @@ import contextlib
 import dataclasses
 import itertools
 import os
+import signal
 import sys
 import threading
 import time
@@ -41,7 +44,8 @@ import jax
 import numpy as np
 
 EXIT_PEER_LOST = 3  # another process died or hung; restart all processes to resume
-EXIT_PREEMPTED = 75  # stopped on SIGTERM after a checkpoint (EX_TEMPFAIL: run again to resume)
+EXIT_PREEMPTED = 75  # stopped on SIGTERM/SIGINT after a checkpoint (EX_TEMPFAIL: run again)
+EXIT_INTERRUPTED = 130  # a second SIGINT: stopped at once, without a checkpoint
 
 
 class PeerLostError(RuntimeError):
@@ -49,7 +53,13 @@ class PeerLostError(RuntimeError):
 
 
 class PreemptedError(RuntimeError):
-    """All processes stopped at the same step after a preemption notice (SIGTERM)."""
+    """All processes stopped at the same step after SIGTERM/SIGINT, with a checkpoint saved."""
+
+    def __init__(self, step: int):
+        super().__init__(
+            f"stopped at step {step}, checkpoint saved; run the same command to resume"
+        )
+        self.step = step
 
 
 @dataclasses.dataclass
@@ -63,11 +73,14 @@ class DistributedSettings:
       wait_timeout: longest time processes wait at a barrier for work that
         process 0 does alone (dataset generation, anchor priors, evaluation).
       heartbeat_timeout: after this long without heartbeats JAX declares a process dead.
+      peer_lost_hint: what the peer-lost error tells the user to do (the trainers name
+        their checkpoint folder).
     """
 
     step_timeout: float = 900.0
     wait_timeout: float = 7200.0
     heartbeat_timeout: int = 100
+    peer_lost_hint: str = "Restart all processes to resume from the last checkpoint."
 
 
 settings = DistributedSettings()
@@ -157,7 +170,117 @@ def initialize_distributed(
         heartbeat_timeout_seconds=settings.heartbeat_timeout,
         shutdown_timeout_seconds=shutdown_timeout,
     )
-    return jax.process_count() > 1
+    multi = jax.process_count() > 1
+    if multi:
+        _start_beacon()
+    return multi
+
+
+# ----------------------------------------------------------------------------- liveness
+
+BEACON_S = 1.0  # how often each process signals that it is alive (coordination service)
+
+
+def _beacon_key(process_id: int) -> str:
+    return f"gac_jax/alive/{process_id}"
+
+
+def _start_beacon() -> None:
+    """Every process increments its own counter in the coordination service every second.
+
+    :func:`watch_peers` reads the counters: a peer whose counter stops moving is dead
+    (or frozen) long before JAX's own heartbeat timeout ends the survivors with a C++
+    abort.
+    """
+    from jax._src import distributed
+
+    client, me = distributed.global_state.client, distributed.global_state.process_id
+
+    def beat() -> None:
+        while True:
+            with contextlib.suppress(Exception):  # the service may be gone: watchers decide
+                client.key_value_increment(_beacon_key(me), 1)
+            time.sleep(BEACON_S)
+
+    threading.Thread(target=beat, name="gac-beacon", daemon=True).start()
+
+
+@contextlib.contextmanager
+def watch_peers(what: str, stall_s: float | None = None, poll_s: float = 0.5) -> Iterator[None]:
+    """Inside: a peer that stops signalling for ``stall_s`` seconds (default: half the
+    heartbeat timeout) ends this process with the one-line peer-lost error (exit 3).
+
+    For waits that no collective interrupts when a peer dies (orbax's checkpoint
+    barriers): JAX would notice only after ``heartbeat_timeout`` and then abort with a
+    C++ stack trace. Single process: nothing happens.
+    """
+    client = _client()
+    if client is None or jax.process_count() == 1:
+        yield
+        return
+    stall_s = settings.heartbeat_timeout / 2 if stall_s is None else stall_s
+    me, n = jax.process_index(), jax.process_count()
+    done = threading.Event()
+
+    def watch() -> None:
+        seen: dict[int, tuple[str, float]] = {}
+        while not done.wait(poll_s):
+            now = time.monotonic()
+            for peer in range(n):
+                if peer == me:
+                    continue
+                try:
+                    value = client.key_value_try_get(_beacon_key(peer))
+                except Exception:  # noqa: BLE001 - not there yet, or the service is gone
+                    value = None
+                last = seen.get(peer)
+                if last is None or value != last[0]:
+                    seen[peer] = (value, now)
+                elif now - last[1] > stall_s and not done.is_set():
+                    exit_peer_lost(f"process {peer} gave no sign of life for {stall_s:g} s {what}")
+
+    thread = threading.Thread(target=watch, name="gac-peer-watch", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+
+
+_exit_lock = threading.Lock()
+
+
+def exit_peer_lost(detail: str, hint: str | None = None) -> None:
+    """Prints the one-line peer-lost error and ends this process with :data:`EXIT_PEER_LOST`.
+
+    For threads that notice a dead peer while the main thread waits (a checkpoint
+    barrier, :func:`watch_peers`).
+    """
+    hint = settings.peer_lost_hint if hint is None else hint
+    first = detail.strip().splitlines()[0][:300] if detail.strip() else "no detail"
+    exit_once(
+        f"error: {_where_safe()}: lost contact with another process ({first}): it died "
+        f"or hung. Stopping instead of waiting. {hint}".strip(),
+        EXIT_PEER_LOST,
+    )
+
+
+def exit_once(message: str, code: int) -> None:
+    """Prints ``message`` to stderr and ends the process with ``code`` at once, without
+    Python's shutdown (peers may be dead or stuck in a collective with this process).
+    When several threads get here, only the first one prints."""
+    if _exit_lock.acquire(blocking=False):
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+        _say(message)
+    os._exit(code)
+
+
+def _where_safe() -> str:
+    try:
+        return _where()
+    except Exception:  # noqa: BLE001 - the backend may be unusable by now
+        return "this process"
 
 
 def is_main_process() -> bool:
@@ -278,13 +401,92 @@ def check_shared_directory(directory: str | os.PathLike) -> None:
         )
 
 
-def preemption_requested(step: int) -> bool:
-    """True at the step where all processes agreed to stop after a SIGTERM to any of them.
+# ----------------------------------------------------------------------------- stopping
 
-    Must be called at every step by every process (single process: always False).
+_stop = {"requested": False, "installed": False}
+
+
+def _multi_process_started() -> bool:
+    """Whether ``jax.distributed`` runs (without starting a backend, unlike process_count)."""
+    from jax._src import distributed
+
+    return distributed.global_state.client is not None
+
+
+def install_stop_handlers() -> None:
+    """SIGTERM and SIGINT stop the run after the current step, with a checkpoint.
+
+    For entry points (``train.py``), from the main thread, after
+    :func:`initialize_distributed`. The trainers poll :func:`preemption_requested`
+    after every step; when it says so they save a checkpoint and raise
+    :class:`PreemptedError` (exit status :data:`EXIT_PREEMPTED`).
+
+    * Single process: either signal sets the flag that :func:`preemption_requested` reads.
+    * Multi-process: SIGTERM belongs to JAX's preemption service (installed by
+      ``jax.distributed.initialize``), which makes all processes agree on the step;
+      a first SIGINT is passed on to it as a SIGTERM to this process.
+    * A second SIGINT exits at once (status :data:`EXIT_INTERRUPTED`), without a
+      checkpoint, even while the main thread waits inside XLA: the signal numbers
+      reach a small thread through ``signal.set_wakeup_fd``, not the main thread's
+      Python handlers (which run only between bytecodes).
+    """
+    if _stop["installed"]:
+        return
+    multi = _multi_process_started()
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    signals = (signal.SIGINT,) if multi else (signal.SIGINT, signal.SIGTERM)
+    for signum in signals:
+        # A Python-level handler makes CPython's C handler write to the wakeup fd.
+        signal.signal(signum, lambda *_: None)
+    signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+    threading.Thread(
+        target=_watch_stop_signals, args=(read_fd, multi), name="gac-signals", daemon=True
+    ).start()
+    _stop["installed"] = True
+
+
+def _say(text: str) -> None:
+    with contextlib.suppress(OSError):
+        os.write(2, (text + "\n").encode())
+
+
+def _watch_stop_signals(read_fd: int, multi: bool) -> None:
+    interrupts = 0
+    while True:
+        data = os.read(read_fd, 64)
+        if not data:
+            return
+        for signum in data:
+            if signum == signal.SIGINT:
+                interrupts += 1
+                if interrupts > 1:
+                    _say("second interrupt: stopping now, without a checkpoint")
+                    os._exit(EXIT_INTERRUPTED)
+            elif signum != signal.SIGTERM:
+                continue
+            if _stop["requested"]:
+                continue
+            _stop["requested"] = True
+            name = signal.Signals(signum).name
+            _say(
+                f"{name} received: stopping after the current step with a checkpoint "
+                "(Ctrl-C again to stop at once, without one)"
+            )
+            if multi and signum == signal.SIGINT:
+                os.kill(os.getpid(), signal.SIGTERM)  # JAX's preemption notifier takes it on
+
+
+def preemption_requested(step: int) -> bool:
+    """True at the step where the run stops after a SIGTERM or SIGINT (see
+    :func:`install_stop_handlers`).
+
+    Must be called at every step by every process. Multi-process: all processes
+    agree on the step (JAX's preemption sync point). Single process: the first
+    call after the signal arrived.
     """
     if jax.process_count() == 1:
-        return False
+        return _stop["requested"]
     from jax._src import distributed
     from jax.experimental import multihost_utils
 

@@ -12,8 +12,13 @@ import pytest
 from gac_jax.cpu_backend import apply_default_xla_flags
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SHARED = REPO_ROOT.parent / "shared"
+# The optional larger sample set beside the repository; GAC_JAX_TEST_SHARED points elsewhere
+# (e.g. at a non-existent folder, to check that the suite runs from a fresh clone alone).
+SHARED = Path(os.environ.get("GAC_JAX_TEST_SHARED", REPO_ROOT.parent / "shared"))
 KITTI_SAMPLES = SHARED / "data" / "kitti_samples"
+# Real KITTI frames vendored in the repository (tests/data/kitti/README.md): 4 labelled object
+# frames (split ``labeled``) and the KITTI-depth frame.
+VENDORED_KITTI = REPO_ROOT / "tests" / "data" / "kitti"
 
 
 _JIT_CACHE: str | None = None
@@ -50,16 +55,31 @@ def pytest_unconfigure(config):
 
 @pytest.fixture(scope="session")
 def kitti_samples() -> Path:
-    """Root of the real KITTI sample frames (``../shared/data/kitti_samples``); skips if absent."""
-    if not (KITTI_SAMPLES / "object" / "training" / "calib").is_dir():
-        pytest.skip(f"real KITTI samples not found at {KITTI_SAMPLES}")
-    return KITTI_SAMPLES
+    """Root of the vendored real KITTI frames (``tests/data/kitti``): ``object/`` (4 labelled
+    frames, split ``labeled``) and ``depth/`` (the KITTI-depth frame)."""
+    if not (VENDORED_KITTI / "object" / "training" / "calib").is_dir():
+        raise FileNotFoundError(f"vendored KITTI frames missing at {VENDORED_KITTI}")
+    return VENDORED_KITTI
 
 
 @pytest.fixture(scope="session")
 def kitti_object_root(kitti_samples: Path) -> Path:
-    """KITTI object root of the 13 labeled real frames (split ``labeled``)."""
+    """KITTI object root of the vendored labelled real frames (split ``labeled``)."""
     return kitti_samples / "object"
+
+
+@pytest.fixture(scope="session")
+def kitti_samples_full() -> Path:
+    """The larger optional set ``../shared/data/kitti_samples`` (13 labelled frames, split
+    ``labeled``; 5 unlabelled ones, split ``unlabeled``, one with a real right image).
+
+    Only for the few tests that need more than the vendored frames; skips if absent.
+    """
+    if not (KITTI_SAMPLES / "object" / "training" / "calib").is_dir():
+        pytest.skip(
+            f"needs the 13-frame / unlabelled KITTI set of ../shared (not found at {KITTI_SAMPLES})"
+        )
+    return KITTI_SAMPLES
 
 
 TINY_DETECT3D_OVERRIDES = (
@@ -74,8 +94,8 @@ TINY_DETECT3D_OVERRIDES = (
 
 @pytest.fixture(scope="session")
 def tiny_detect3d_workdir(kitti_object_root: Path, tmp_path_factory) -> Path:
-    """A detection workdir trained 2 steps (``configs/detect3d_default.py:tiny`` on the 13 real
-    frames, score threshold 0), evaluated at the end: ``results/step_2/{data,pictures}``.
+    """A detection workdir trained 2 steps (``configs/detect3d_default.py:tiny`` on the vendored
+    real frames, score threshold 0), evaluated at the end: ``results/step_2/{data,pictures}``.
 
     Shared by the inference tests (evaluate.py model mode, gac_jax.predict); treat it as
     read-only (copy it to change it).

@@ -150,7 +150,7 @@ def test_filter_keeps_real_kitti_cars_and_drops_the_sky(kitti_object_root):
         assert not keep["reference"][i][sky & (anchors.shapes[:, 1] <= 64)].any()
         # Below the horizon a good part survives (the filter is not trivially empty).
         assert keep["reference"][i][~sky].mean() > 0.2
-    assert num_cars >= 25
+    assert num_cars >= 10
 
 
 def test_mask_from_detection_constants_uses_each_bins_prior_depth():

@@ -148,7 +148,7 @@ def test_kitti_labels_round_trip_through_p2(kitti_object_root):
         for i in range(len(cars)):
             pose = (P2, centre3d[i], cars.location[i], cars.rotation_y[i], anchors.boxes[best[i]])
             rows.append((*pose, boxes[i], uv[i], depth[i], cars.dimensions[i], alpha[i]))
-    assert len(rows) >= 30
+    assert len(rows) >= 16  # every car of the vendored frames
     P2s, centre3d, location, ry_gt, anchor_boxes, *gt = (
         np.stack(c) for c in zip(*rows, strict=True)
     )

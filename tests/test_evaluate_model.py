@@ -1,4 +1,4 @@
-"""evaluate.py model mode end to end on a tiny trained workdir (13 real KITTI frames).
+"""evaluate.py model mode end to end on a tiny trained workdir (the vendored real KITTI frames).
 
 The trainer's own evaluation of the same checkpoint is the reference: the model mode
 must write byte-identical result files and the same AP. Also: resume after a lost
@@ -20,6 +20,7 @@ import pytest
 
 from gac_jax import pretrained
 from gac_jax.checkpointing import Checkpoints
+from gac_jax.data.kitti import read_split
 from gac_jax.evaluation import cli
 from tests.conftest import TINY_DETECT3D_OVERRIDES
 
@@ -44,8 +45,11 @@ def workdir_copy(tiny_detect3d_workdir, tmp_path) -> Path:
     return dst
 
 
-def test_model_mode_reproduces_the_trainer_evaluation(workdir_copy, tmp_path, capsys):
+def test_model_mode_reproduces_the_trainer_evaluation(
+    workdir_copy, kitti_object_root, tmp_path, capsys
+):
     wd = workdir_copy
+    n = len(read_split(kitti_object_root / "ImageSets" / "labeled.txt"))
     out_json = tmp_path / "ap.json"
     code, out, err = run(
         ["--task", "detect3d", "--workdir", wd, "--json", out_json, "--save-images", 3], capsys
@@ -54,7 +58,7 @@ def test_model_mode_reproduces_the_trainer_evaluation(workdir_copy, tmp_path, ca
     trainer = wd / "results" / "step_2"
     mine = wd / "eval" / "labeled_step2"
     expected = result_texts(trainer / "data")
-    assert len(expected) == 13 and sum(t.count("\n") for t in expected.values()) > 13
+    assert len(expected) == n and sum(t.count("\n") for t in expected.values()) > n
     assert result_texts(mine / "data") == expected
     reference = json.loads((trainer / "metrics.json").read_text())["metrics"]
     written = json.loads(out_json.read_text())
@@ -63,7 +67,7 @@ def test_model_mode_reproduces_the_trainer_evaluation(workdir_copy, tmp_path, ca
     for needle in ("KITTI AP|R40", "frames/s", "model", "post-processing", "I/O", "compile"):
         assert needle in out
     summary = json.loads((mine / "metrics.json").read_text())
-    assert summary["predicted"] == 13 and summary["resumed"] == 0
+    assert summary["predicted"] == n and summary["resumed"] == 0
     assert summary["speed"]["frames_per_s"] > 0 and summary["compile_s"] > 0
     assert summary["threads"] == len(os.sched_getaffinity(0))
     # Tiny config: top_k 20 and score threshold 0, so every frame overflows the cap, and says so.
@@ -72,19 +76,20 @@ def test_model_mode_reproduces_the_trainer_evaluation(workdir_copy, tmp_path, ca
     assert cap["frames_over_cap"] == 13 and cap["max_candidates"] > 20
     assert "13 of 13 frames had more anchors above the score threshold" in out
     names = sorted(p.name for p in (mine / "pictures").glob("*.png"))
-    assert names == ["000000.png", "000001.png", "000002.png", "grid.png"]
+    assert names == ["000000.png", "000001.png", "000010.png", "grid.png"]
     # Pictures written by the trainer at its evaluation (config.eval.num_pictures = 2).
     names = sorted(p.name for p in (trainer / "pictures").glob("*.png"))
     assert names == ["000000.png", "000001.png", "grid.png"]
 
 
-def test_resume_redoes_only_the_missing_frame(workdir_copy, capsys):
+def test_resume_redoes_only_the_missing_frame(workdir_copy, kitti_object_root, capsys):
     wd = workdir_copy
+    n = len(read_split(kitti_object_root / "ImageSets" / "labeled.txt"))
     argv = ["--task", "detect3d", "--workdir", wd]
     assert run(argv, capsys)[0] == 0
     data = wd / "eval" / "labeled_step2" / "data"
     before = {p.name: p.stat().st_mtime_ns for p in data.glob("*.txt")}
-    lost = data / "000004.txt"
+    lost = data / "000036.txt"
     text = lost.read_text()
     lost.unlink()
     # Second run in a fresh process with one CPU thread (the --threads plumbing).
@@ -97,15 +102,15 @@ def test_resume_redoes_only_the_missing_frame(workdir_copy, capsys):
         timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "13 frames (12 already done)" in proc.stdout
+    assert f"{n} frames ({n - 1} already done)" in proc.stdout
     assert "speed (1 CPU threads)" in proc.stdout
     summary = json.loads((data.parent / "metrics.json").read_text())
-    assert summary["predicted"] == 1 and summary["resumed"] == 12
+    assert summary["predicted"] == 1 and summary["resumed"] == n - 1
     assert summary["threads"] == 1  # XLA compute threads counted in that process
     assert lost.read_text() == text
     after = {p.name: p.stat().st_mtime_ns for p in data.glob("*.txt")}
     changed = sorted(n for n in after if after[n] != before.get(n))
-    assert changed == ["000004.txt"]
+    assert changed == ["000036.txt"]
     # Other settings than the ones the folder was made with: refused, nothing overwritten.
     code, _, err = run([*argv, "eval.score_threshold=0.5"], capsys)
     assert code == 2 and "run.json" in err and "eval differ" in err
@@ -114,7 +119,7 @@ def test_resume_redoes_only_the_missing_frame(workdir_copy, capsys):
     moved = wd.parent / "moved"
     shutil.move(wd, moved)
     code, out, err = run(["--task", "detect3d", "--workdir", moved], capsys)
-    assert code == 0 and "13 frames (13 already done)" in out, err
+    assert code == 0 and f"{n} frames ({n} already done)" in out, err
 
 
 def test_converted_weights_with_priors_computed_on_the_fly(

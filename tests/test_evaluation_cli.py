@@ -52,6 +52,24 @@ def assert_one_line_error(code, err, *needles):
         assert needle in lines[0], (needle, lines[0])
 
 
+def test_missing_result_files_are_counted_and_require_all_refuses(detection_dirs, capsys):
+    labels, results, ids = detection_dirs
+    (results / f"{ids[1]}.txt").unlink()
+    argv = ["--task", "detect3d", "--label-dir", labels, "--result-dir", results]
+    code, out, err = run_main(argv, capsys)
+    assert code == 0, err
+    assert f"2 of {len(ids)} frames have no result file" in out
+    assert cli.missing_result_ids(results, ids) == ids[:2]
+    code, out, err = run_main([*argv, "--require-all"], capsys)
+    assert_one_line_error(code, err, str(results), f"2 of {len(ids)} frames", "--require-all")
+    assert "AP|R40" not in out
+    # Every result file present: --require-all scores as usual.
+    for i in ids[:2]:
+        (results / f"{i}.txt").write_text("")
+    code, out, err = run_main([*argv, "--require-all"], capsys)
+    assert code == 0 and f"0 of {len(ids)} frames have no result file" in out, err
+
+
 def test_detect3d_json_schema_and_values(detection_dirs, tmp_path, capsys):
     labels, results, ids = detection_dirs
     out_json = tmp_path / "out" / "ap.json"
@@ -60,7 +78,8 @@ def test_detect3d_json_schema_and_values(detection_dirs, tmp_path, capsys):
         capsys,
     )
     assert code == 0, err
-    assert "AP|R40" in out and "13 frames" in out
+    assert "AP|R40" in out and f"{len(ids)} frames" in out
+    assert f"1 of {len(ids)} frames have no result file" in out and f"{ids[0]}.txt" in out
     data = json.loads(out_json.read_text())
     assert set(data) == {"ap11", "ap40", "_meta"}
     # Which overlaps each entry used: the loose setting keeps bbox/AOS at the strict value.
@@ -101,7 +120,7 @@ def test_detect3d_json_schema_and_values(detection_dirs, tmp_path, capsys):
 def test_detect3d_split_file_and_classes(detection_dirs, tmp_path, capsys):
     labels, results, ids = detection_dirs
     split = tmp_path / "sub.txt"
-    write_split(split, ids[3:8])
+    write_split(split, ids[1:3])
     out_json = tmp_path / "ap.json"
     code, out, _ = run_main(
         [
@@ -120,7 +139,7 @@ def test_detect3d_split_file_and_classes(detection_dirs, tmp_path, capsys):
         ],
         capsys,
     )
-    assert code == 0 and "5 frames" in out
+    assert code == 0 and "2 frames" in out
     data = json.loads(out_json.read_text())
     assert set(data["ap40"]) == set(data["_meta"]["min_overlap"]) == {"Car"}
 

@@ -184,7 +184,7 @@ def test_recovers_kitti_yaw(kitti_object_root):
             before.append(np.abs(np.angle(np.exp(1j * (start - objs.rotation_y)))))
             after.append(np.abs(np.angle(np.exp(1j * (out - objs.rotation_y)))))
     before, after = np.concatenate(before), np.concatenate(after)
-    assert before.size >= 60
+    assert before.size >= 30  # 16 cars, two perturbations each
     print(
         f"\nKITTI cars n={before.size}: median |ry err| before {np.median(before):.3f} "
         f"after {np.median(after):.4f}; mean {before.mean():.3f} -> {after.mean():.3f}; "

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from gac_jax.data.kitti import KittiObjectLayout, KittiObjects, read_label
+from gac_jax.data.kitti import KittiObjectLayout, KittiObjects, read_label, read_split
 from gac_jax.evaluation import kitti_object as ko
 from tests import kitti_devkit_oracle as ref
 
@@ -195,7 +195,7 @@ def _valid_counts(gts, cls, difficulty):
 
 def test_perfect_detections_on_real_frames(kitti_object_root):
     gts = _real_frames(kitti_object_root)
-    assert len(gts) == 13
+    assert len(gts) == len(read_split(kitti_object_root / "ImageSets" / "labeled.txt"))
     res = ko.evaluate_detections(gts, [_perfect(g) for g in gts])
     # The devkit indexes precision by threshold, one threshold per TP while n <= 40 valid
     # objects: perfect detections of n objects give precision 1 at samples 0..n-1 only, so
@@ -215,13 +215,14 @@ def test_perfect_detections_on_real_frames(kitti_object_root):
 
 
 def test_perfect_and_noisy_detections_on_replicated_real_frames(kitti_object_root):
-    # Repeating the 13 frames 41 times gives every class/difficulty present >= 41 objects,
+    # Repeating the real frames 41 times gives every class/difficulty present >= 41 objects,
     # enough for the 41 recall samples: perfect detections then score exactly 100.
-    gts = _real_frames(kitti_object_root) * 41
+    frames = _real_frames(kitti_object_root)
+    gts = frames * 41
     res = ko.evaluate_detections(gts, [_perfect(g) for g in gts])
     for cls in ko.CLASSES:
         for d in range(3):
-            if _valid_counts(gts[:13], cls, d) == 0:
+            if _valid_counts(frames, cls, d) == 0:
                 continue
             for ap in ("ap11", "ap40"):
                 for entry in res[ap][cls].values():
@@ -248,12 +249,14 @@ def test_perfect_and_noisy_detections_on_replicated_real_frames(kitti_object_roo
         moderate_car.append((r["0.70"]["3d"][1], r["0.50"]["3d"][1], r["0.70"]["bbox"][1]))
     strict3d, loose3d, bbox = zip(*moderate_car, strict=True)
     assert strict3d[0] == pytest.approx(100.0) and all(np.diff(strict3d) < 0)
-    assert all(np.diff(loose3d) < 0) and all(np.diff(bbox) < 0)
+    assert all(np.diff(loose3d) < 0)
+    # (2D IoU 0.7 tolerates the smallest box noise, 1.5 px, on these few cars: no drop there)
+    assert all(np.diff(bbox) <= 0) and all(np.diff(bbox[1:]) < 0)
     assert all(lo >= st for lo, st in zip(loose3d, strict3d, strict=True))
 
-    # Detections of the wrong frames (shuffled) are mostly false positives.
-    perm = rng.permutation(13)
-    shuffled = [_perfect(gts[perm[i % 13]]) for i in range(len(gts))]
+    # Detections of the wrong frames are mostly false positives.
+    # (each frame gets the next real frame's: never its own)
+    shuffled = [_perfect(gts[(i + 1) % len(gts)]) for i in range(len(gts))]
     r = ko.evaluate_detections(gts, shuffled, classes=("Car",))["ap40"]["Car"]["0.70"]
     assert r["3d"][1] < strict3d[-1] and r["bbox"][1] < 30.0
 

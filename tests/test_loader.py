@@ -13,7 +13,7 @@ import pytest
 
 from gac_jax.data import transforms as tr
 from gac_jax.data.files import KittiFormatError
-from gac_jax.data.kitti import KittiObjects
+from gac_jax.data.kitti import KittiObjects, write_split
 from gac_jax.data.loader import (
     DEPTH_KEYS,
     DETECTION_KEYS,
@@ -61,8 +61,19 @@ def train_transform():
 
 
 @pytest.fixture(scope="module")
-def source(kitti_object_root):
-    return KittiObjectSource(kitti_object_root, "labeled")
+def source(kitti_object_root, tmp_path_factory):
+    """13 records: the vendored real frames repeated under the ids 000000-000012 (in split
+    order: 000001 is the real 000001), so batches, shards and epochs have the sizes below."""
+    real = KittiObjectSource(kitti_object_root, "labeled").frame_ids
+    root = tmp_path_factory.mktemp("loader_kitti")
+    ids = [f"{i:06d}" for i in range(13)]
+    for sub, ext in (("image_2", "png"), ("calib", "txt"), ("label_2", "txt")):
+        (root / "training" / sub).mkdir(parents=True)
+        for i, frame_id in enumerate(ids):
+            src = kitti_object_root / "training" / sub / f"{real[i % len(real)]}.{ext}"
+            (root / "training" / sub / f"{frame_id}.{ext}").symlink_to(src)
+    write_split(root / "ImageSets" / "labeled.txt", ids)
+    return KittiObjectSource(root, "labeled")
 
 
 def make_loader(source, **kw):
@@ -131,7 +142,7 @@ def test_detection_arrays_values(source):
 
 
 def test_too_many_objects(source):
-    s = source[7]  # 000007
+    s = source[7]  # 000007 (the real 000036: 7 cars)
     n = int(np.isin(s["objects"].type, CLASSES).sum())
     assert n > 2
     with pytest.raises(ValueError, match=f"frame 000007 .*has {n} objects.*max_objects=2"):

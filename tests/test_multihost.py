@@ -1,6 +1,6 @@
 """Multi-process training: 2 processes on localhost (CPU, gloo) through ``train.py``.
 
-The detection runs are the ``:tiny`` detector on the 13 real KITTI frames with a global
+The detection runs are the ``:tiny`` detector on the vendored real KITTI frames with a global
 batch of 4 and plain SGD (patched in by the worker below: the update is linear
 in the gradient, so parameters of different process counts compare to float
 tolerance; Adam's m / sqrt(v) turns float-noise gradients of near-unused
@@ -120,7 +120,15 @@ def env(tmp_path_factory) -> dict:
 class Run:
     """``num_processes`` workers of one job (train.py + SGD), logging to ``tmp/<name>.pI.log``."""
 
-    def __init__(self, name: str, args: list[str], env: dict, num_processes: int, tmp: Path):
+    def __init__(
+        self,
+        name: str,
+        args: list[str],
+        env: dict,
+        num_processes: int,
+        tmp: Path,
+        worker: str = WORKER,
+    ):
         port = free_port()
         self.logs = [tmp / f"{name}.p{i}.log" for i in range(num_processes)]
         self.procs = []
@@ -134,7 +142,7 @@ class Run:
             with open(log, "w") as f:
                 self.procs.append(
                     subprocess.Popen(
-                        [sys.executable, "-c", WORKER, *flags, *args],
+                        [sys.executable, "-c", worker, *flags, *args],
                         env=env,
                         stdout=f,
                         stderr=subprocess.STDOUT,
@@ -257,7 +265,9 @@ def test_two_processes_train_like_one_survive_a_kill_and_resume_across_counts(
     with Checkpoints(workdir) as ckpts:
         stopped = ckpts.latest_step()
     assert last < stopped < TOTAL_STEPS, run.tails()
-    assert f"stopped at step {stopped} on a preemption notice" in run.log(0)
+    assert (
+        f"stopped at step {stopped}, checkpoint saved; run the same command to resume" in run.log(0)
+    )
 
     # Two processes made the same updates as one on the same global batches: every
     # logged loss (one history despite the kill) and the parameters where they stopped.
@@ -277,6 +287,47 @@ def test_two_processes_train_like_one_survive_a_kill_and_resume_across_counts(
     assert run.wait(300) == [0], run.tails()
     assert f"resumed from {workdir / 'checkpoints'} at step {stopped}" in run.log(0)
     assert_params_close(workdir, reference, TOTAL_STEPS)
+
+
+# train.py whose process 1 dies (SIGKILL) while its step-2 checkpoint is being written.
+DIES_DURING_SAVE = WORKER.replace(
+    "sys.exit(train.main",
+    """import os, signal, jax
+from gac_jax.checkpointing import Checkpoints
+save = Checkpoints.save
+def dying_save(self, step, state, meta=None, wait=True):
+    if jax.process_index() == 1 and step == 2:
+        save(self, step, state, meta, wait=False)  # the asynchronous write is under way
+        print("process 1 dies while saving", flush=True)
+        os.kill(os.getpid(), signal.SIGKILL)
+    return save(self, step, state, meta, wait)
+Checkpoints.save = dying_save
+sys.exit(train.main""",
+)
+
+
+def test_a_peer_lost_while_a_checkpoint_is_written_is_a_clean_stop(
+    kitti_object_root, env, tmp_path
+):
+    workdir = tmp_path / "work"
+    args = tiny_args(kitti_object_root, workdir) + ["train.checkpoint_every=2"]
+    run = Run("dies_saving", args, env, 2, tmp_path, worker=DIES_DURING_SAVE)
+    try:
+        wait_for(lambda: "dies while saving" in run.log(1), run, 300, "process 1's save")
+        died = time.time()
+        code = run.procs[0].wait(timeout=60)
+        waited = time.time() - died
+        print(f"process 0 exited {waited:.1f} s after process 1 died")
+    finally:
+        run.kill()
+    log = run.log(0)
+    assert code == 3, run.tails()
+    errors = [line for line in log.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 1 and "lost contact with another process" in errors[0], run.tails()
+    assert "Check failure" not in log and "Traceback" not in log, run.tails()
+    assert waited < 10 + 5  # GAC_HEARTBEAT_TIMEOUT, plus the poll interval and exit
+    with Checkpoints(workdir) as ckpts:
+        assert ckpts.latest_step() is None  # the half-written step-2 checkpoint is not one
 
 
 HANGING_WORKER = f"""

@@ -66,7 +66,7 @@ def raises_naming(path: Path | str, line: int | None = None):
 
 def test_labels_parse_and_match_projected_3d_boxes(kitti_object_root):
     src = KittiObjectSource(kitti_object_root, "labeled")
-    assert len(src) == 13
+    assert len(src) == 4  # the vendored frames 000000, 000001, 000010, 000036
     errors, counts = [], {}
     for i in range(len(src)):
         s = src[i]
@@ -83,12 +83,11 @@ def test_labels_parse_and_match_projected_3d_boxes(kitti_object_root):
         f"median {np.median(err):.3f} px, max {err.max():.2f} px"
     )
     assert counts == {
-        "Car": 42,
-        "DontCare": 32,
-        "Pedestrian": 3,
-        "Cyclist": 2,
+        "Car": 16,
+        "DontCare": 10,
+        "Pedestrian": 2,
+        "Cyclist": 1,
         "Truck": 1,
-        "Misc": 1,
     }
     assert np.median(err) < 2.0
 
@@ -105,12 +104,12 @@ def test_object_sample_fields(kitti_object_root):
     assert list(s["objects"].type) == ["Pedestrian"]
     assert src.frame_ids == read_split(kitti_object_root / "ImageSets" / "labeled.txt")
     with pytest.raises(IndexError):
-        src[13]
+        src[len(src)]
     assert isinstance(open_object_source(kitti_object_root, "labeled"), KittiObjectSource)
 
 
 def test_right_image_views(kitti_object_root, tmp_path):
-    root = copy_object_root(kitti_object_root, tmp_path, ["000001", "000003"], right=True)
+    root = copy_object_root(kitti_object_root, tmp_path, ["000001", "000036"], right=True)
     src = KittiObjectSource(root, "train", use_right_image=True)
     assert len(src) == 4
     left, right = src[0], src[2]
@@ -136,9 +135,9 @@ def test_right_image_views(kitti_object_root, tmp_path):
     )
 
 
-def test_real_right_image_unlabeled(kitti_samples, tmp_path):
-    """000107 is the one sample frame with a real image_3 (unlabeled subset)."""
-    src_root = kitti_samples / "object"
+def test_real_right_image_unlabeled(kitti_samples_full, tmp_path):
+    """000107 is the one sample frame with a real image_3 (unlabeled subset of ../shared)."""
+    src_root = kitti_samples_full / "object"
     with raises_naming(src_root / "ImageSets" / "unlabeled.txt", 1):
         KittiObjectSource(src_root, "unlabeled", True, subset="unlabeled", with_labels=False)
     for sub in ("image_2", "image_3", "calib"):
@@ -224,7 +223,7 @@ def test_depth_selection_source(kitti_samples, tmp_path):
 
 @pytest.fixture
 def object_root(kitti_object_root, tmp_path):
-    return copy_object_root(kitti_object_root, tmp_path / "obj", ["000001", "000002"])
+    return copy_object_root(kitti_object_root, tmp_path / "obj", ["000001", "000036"])
 
 
 def test_bad_label_lines(object_root):
@@ -244,7 +243,7 @@ def test_bad_label_lines(object_root):
 
 
 def test_calib_without_p2(object_root):
-    calib = object_root / "training" / "calib" / "000002.txt"
+    calib = object_root / "training" / "calib" / "000036.txt"
     calib.write_text("\n".join(x for x in calib.read_text().splitlines() if not x.startswith("P2")))
     with raises_naming(calib) as e:
         KittiObjectSource(object_root, "train")[1]
@@ -252,7 +251,7 @@ def test_calib_without_p2(object_root):
 
 
 def test_missing_image(object_root):
-    image = object_root / "training" / "image_2" / "000002.png"
+    image = object_root / "training" / "image_2" / "000036.png"
     src = KittiObjectSource(object_root, "train")
     image.unlink()
     with raises_naming(image) as e:  # vanished after listing
@@ -260,7 +259,7 @@ def test_missing_image(object_root):
     assert "not found" in str(e.value)
     with raises_naming(object_root / "ImageSets" / "train.txt", 2) as e:
         KittiObjectSource(object_root, "train")
-    assert "000002" in str(e.value) and str(image) in str(e.value)
+    assert "000036" in str(e.value) and str(image) in str(e.value)
 
 
 def test_corrupt_png(object_root):

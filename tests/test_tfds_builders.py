@@ -25,7 +25,7 @@ from gac_jax.data.sources import (
     open_object_source,
 )
 
-VAL = ["000036", "000002", "000010"]  # not sorted: records must keep split-file order
+VAL = ["000010", "000001", "000036"]  # not sorted: records must keep split-file order
 
 
 def copy_object_root(src: Path, dst: Path, ids: list[str], right: bool = False) -> Path:
@@ -123,7 +123,7 @@ def test_unlabeled_and_testing_frames(prepared, tmp_path):
     testing = tmp_path / "kitti"
     for sub in ("image_2", "calib"):
         (testing / "testing" / sub).mkdir(parents=True)
-        for f in (root / "training" / sub).glob("00000[12].*"):
+        for f in (root / "training" / sub).glob("00000[01].*"):
             (testing / "testing" / sub / f.name).write_bytes(f.read_bytes())
     out = tfds_builders.prepare("object", testing, tmp_path / "out", subset="testing")
     src = TfdsObjectSource(out, "frames", with_labels=False)
@@ -138,8 +138,8 @@ def test_unlabeled_and_testing_frames(prepared, tmp_path):
 
 
 def test_builder_rejects_bad_files(prepared, tmp_path, capsys):
-    root = copy_object_root(prepared["root"], tmp_path / "kitti", ["000001", "000002"])
-    label = root / "training" / "label_2" / "000002.txt"
+    root = copy_object_root(prepared["root"], tmp_path / "kitti", ["000001", "000036"])
+    label = root / "training" / "label_2" / "000036.txt"
     label.write_text("Car 0.0 0 1.0 1 2 3 4 1.5 1.6 3.9 1.0 1.6 twenty 0.1\n")
     with raises_naming(label, 1):
         tfds_builders.prepare("object", root, tmp_path / "out")

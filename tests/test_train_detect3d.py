@@ -1,7 +1,7 @@
 """The detection trainer: compile-once step, multi-device equivalence, kill/resume, NaN stop.
 
 Runs the ``:tiny`` default config (ResNet-18 of width 8, 64x256 input) on the
-13 real KITTI frames of ``../shared``.
+real KITTI frames vendored in ``tests/data/kitti``.
 """
 
 from __future__ import annotations
@@ -157,7 +157,7 @@ def _train_cmd(workdir: Path, root: Path, steps: int) -> list[str]:
     ]
 
 
-def test_killed_run_resumes_to_the_same_parameters(kitti_object_root, tmp_path):
+def test_killed_and_stopped_run_resumes_to_the_same_parameters(kitti_object_root, tmp_path):
     steps = 12
     env = dict(os.environ, PYTHONPATH=str(REPO))
     killed, clean = tmp_path / "killed", tmp_path / "clean"
@@ -179,11 +179,36 @@ def test_killed_run_resumes_to_the_same_parameters(kitti_object_root, tmp_path):
         interrupted_at = ckpts.latest_step()
     assert interrupted_at < steps, "the run finished before it could be killed"
 
+    # Resumed, then stopped by SIGTERM (with loader workers): a checkpoint where it stopped,
+    # one line, exit 75.
+    stopped = subprocess.Popen(
+        [*_train_cmd(killed, kitti_object_root, steps), "data.num_workers=2"],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    metrics = killed / "metrics.jsonl"
+    deadline = time.time() + 300
+    while f'"step": {interrupted_at + 1}, ' not in metrics.read_text():
+        assert stopped.poll() is None, stopped.stdout.read().decode()[-3000:]
+        assert time.time() < deadline, "no step after the resume within 300 s"
+        time.sleep(0.05)
+    stopped.send_signal(signal.SIGTERM)
+    out = stopped.communicate(timeout=120)[0].decode()
+    assert stopped.returncode == 75, out[-3000:]
+    assert f"resumed from {killed / 'checkpoints'} at step {interrupted_at}" in out
+    with Checkpoints(killed) as ckpts:
+        at = ckpts.latest_step()
+    assert interrupted_at < at < steps, out[-3000:]
+    lines = [line for line in out.splitlines() if line.startswith("stopped at")]
+    assert lines == [f"stopped at step {at}, checkpoint saved; run the same command to resume"]
+    assert "SIGTERM received" in out and "Traceback" not in out
+
     resumed = subprocess.run(
         _train_cmd(killed, kitti_object_root, steps), env=env, capture_output=True, text=True
     )
     assert resumed.returncode == 0, resumed.stdout[-2000:] + resumed.stderr[-2000:]
-    assert f"resumed from {killed / 'checkpoints'} at step {interrupted_at}" in resumed.stdout
+    assert f"resumed from {killed / 'checkpoints'} at step {at}" in resumed.stdout
     # The uninterrupted run, in this process (same code path as train.py).
     config = load_config(str(REPO / "configs" / "detect3d_default.py:tiny"))
     apply_overrides(config, _train_cmd(clean, kitti_object_root, steps)[8:])
@@ -191,7 +216,7 @@ def test_killed_run_resumes_to_the_same_parameters(kitti_object_root, tmp_path):
 
     a, b = restore_params(killed, steps), restore_params(clean, steps)
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
-        np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-7)
+        np.testing.assert_array_equal(x, y)  # bit for bit, despite the kill and the stop
     # The metrics file tells one history: every logged step once.
     logged = [
         line for line in (killed / "metrics.jsonl").read_text().splitlines() if '"train"' in line

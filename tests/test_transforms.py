@@ -37,7 +37,7 @@ GEOMETRIC = {
 
 @pytest.fixture(scope="module")
 def samples(kitti_object_root):
-    """The 13 real frames with 2D boxes := exact projections (so they transform exactly)."""
+    """The real frames with 2D boxes := exact projections (so they transform exactly)."""
     src = KittiObjectSource(kitti_object_root, "labeled")
     return [tr.ReprojectBoxes()(src[i]) for i in range(len(src))]
 
@@ -298,8 +298,8 @@ def test_random_ops_use_sample_rng(samples):
 
 
 def test_photometric_distort(samples):
-    img = samples[4]["image"]
-    s = {**samples[4], "rng": np.random.default_rng(0)}
+    img = samples[2]["image"]
+    s = {**samples[2], "rng": np.random.default_rng(0)}
     brightness = tr.PhotometricDistort(contrast=(1, 1), saturation=(1, 1), hue_delta=0)(s)["image"]
     diff = brightness - img.astype(np.float32)
     assert diff.dtype == np.float32 and abs(float(diff.mean())) <= 32
@@ -313,14 +313,17 @@ def test_photometric_distort(samples):
     hs = tr.PhotometricDistort(0, contrast=(1, 1))(gray)["image"]  # S = 0: hue/sat do nothing
     np.testing.assert_allclose(hs, gray["image"], atol=1e-3)
     full = tr.PhotometricDistort(seed=1)
-    unclipped = [full({**samples[i], "rng": np.random.default_rng(i)})["image"] for i in range(8)]
+    unclipped = [
+        full({**samples[i % len(samples)], "rng": np.random.default_rng(i)})["image"]
+        for i in range(8)
+    ]
     assert min(u.min() for u in unclipped) < 0 or max(u.max() for u in unclipped) > 255
     clipped = tr.PhotometricDistort(clip=True)({**s})["image"]
     assert clipped.min() >= 0 and clipped.max() <= 255
 
 
 def test_normalize(samples):
-    s = samples[5]
+    s = samples[3]
     out = tr.Normalize()(s)["image"]
     assert out.dtype == np.float32
     x = s["image"][10, 20].astype(np.float64)

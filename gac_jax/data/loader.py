@@ -31,7 +31,9 @@ Depth batch: ``image``, ``P2``, ``depth`` (B,H,W) f32, ``image_transform``,
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import os
 import sys
 from collections.abc import Callable, Iterator, Sequence
 
@@ -40,6 +42,7 @@ import numpy as np
 
 from gac_jax import geometry
 from gac_jax.data.kitti import KittiObjects
+from gac_jax.data.worker_lifetime import grain_worker_init
 
 DETECTION_KEYS = (
     "image",
@@ -338,7 +341,9 @@ class Loader:
             it_ds = it_ds.mp_prefetch(
                 grain.MultiprocessingOptions(
                     num_workers=self.worker_count, per_worker_buffer_size=self.prefetch
-                )
+                ),
+                # Workers end when this process dies by any signal (SIGKILL included).
+                worker_init_fn=functools.partial(grain_worker_init, parent_pid=os.getpid()),
             )
             # Batches arrive as shared-memory arrays; copying them into ordinary
             # arrays lets grain free the shared memory right away.

@@ -74,6 +74,12 @@ def load_detection_folders(
     return ids, gts, dts
 
 
+def missing_result_ids(result_dir: str | os.PathLike, frame_ids: Sequence[str]) -> list[str]:
+    """The frame ids of ``frame_ids`` without a result file ``<result_dir>/<id>.txt``."""
+    result_dir = Path(result_dir)
+    return [i for i in frame_ids if not (result_dir / f"{i}.txt").exists()]
+
+
 def evaluate_detection_folders(
     label_dir: str | os.PathLike,
     result_dir: str | os.PathLike,
@@ -151,6 +157,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=",".join(CLASSES),
         help="comma-separated subset of Car,Pedestrian,Cyclist (default: all three)",
     )
+    det.add_argument(
+        "--require-all",
+        action="store_true",
+        help="fail if a frame of the label folder (or split file) has no result file "
+        "(default: such a frame counts as 'no detections', and the count is printed)",
+    )
     dep = parser.add_argument_group("--task depth")
     dep.add_argument("--groundtruth-dir", help="folder of 16-bit ground-truth depth PNGs")
     dep.add_argument("--prediction-dir", help="folder of 16-bit predicted depth PNGs (same paths)")
@@ -167,6 +179,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run_detect3d(args, parser) -> dict:
+    if args.workdir and args.require_all:
+        parser.error("--require-all applies to offline mode (--label-dir/--result-dir)")
     if args.workdir:
         from gac_jax.evaluation.detection_model_eval import run_model_mode
 
@@ -179,9 +193,20 @@ def _run_detect3d(args, parser) -> dict:
     if unknown or not classes:
         parser.error(f"--classes must be a subset of {','.join(CLASSES)}, got {args.classes!r}")
     ids, gts, dts = load_detection_folders(args.label_dir, args.result_dir, args.split_file)
+    missing = missing_result_ids(args.result_dir, ids)
+    if missing and args.require_all:
+        raise KittiFormatError(
+            args.result_dir,
+            f"{len(missing)} of {len(ids)} frames have no result file "
+            f"(e.g. {missing[0]}.txt); --require-all refuses to score them as no detections",
+        )
     result = evaluate_detections(gts, dts, classes=classes)
     n_det = sum(len(d) for d in dts)
     print(f"{len(ids)} frames, {n_det} detections ({args.result_dir} vs {args.label_dir})")
+    print(
+        f"{len(missing)} of {len(ids)} frames have no result file (scored as no detections"
+        + (f"; e.g. {missing[0]}.txt)" if missing else ")")
+    )
     print(format_table(result), end="")
     return result
 
@@ -190,6 +215,8 @@ DEPTH_MODEL_MODE_UNSUPPORTED = ("config", "checkpoint", "batch_size", "threads",
 
 
 def _run_depth(args, parser) -> dict:
+    if args.require_all:
+        parser.error("--require-all applies to --task detect3d (depth already needs every file)")
     if args.workdir or args.baseline:
         unsupported = [n for n in DEPTH_MODEL_MODE_UNSUPPORTED if getattr(args, n, None)]
         if unsupported or args.save_images:

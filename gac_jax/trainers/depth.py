@@ -205,7 +205,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     # Step and evaluator.
     train_step = make_train_step(model, tx, loss_options(config), mesh, state_sharding)
     evaluator = make_evaluator(config, eval_source(config, root)) if is_main else None
-    writer = MetricsWriter(workdir, enabled=is_main, resume_step=start_step)
+    writer = MetricsWriter(
+        workdir, is_main, resume_step=start_step, tensorboard=config.log.tensorboard
+    )
     progress = Progress(total_steps, start_step, config.data.batch_size, enabled=is_main)
 
     def save(step: int) -> None:
@@ -225,12 +227,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
         if out["metrics"]:
             print(format_depth_table(out["metrics"], out["num_scored"]), end="", flush=True)
         writer.write(step, kind="eval", **out)
+        writer.pictures(step, (out_dir / "pictures").glob("*.png"))
         with atomic_write(out_dir / "metrics.json") as f:
             json.dump(out, f, indent=2)
         return out
 
     # Loop. In a multi-process run the watchdog stops a process whose peers hang.
     hint = f"Restart all processes to resume from the last checkpoint in {checkpoints.directory}."
+    multiprocess.settings.peer_lost_hint = hint  # also for losses seen outside a step
     watchdog = multiprocess.ProgressWatchdog(hint=hint)
     compile_t0 = time.perf_counter()
     step = start_step
@@ -248,12 +252,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
                 stats = progress.update(step, float(m["loss"]), {"si_1": float(m["si/scale_1"])})
                 lr = float(schedule(step - 1))
                 writer.write(step, lr=lr, **{k: float(v) for k, v in m.items()}, **stats)
-            if multiprocess.preemption_requested(step):  # SIGTERM to any process: all stop here
+            if multiprocess.preemption_requested(step):  # SIGTERM/SIGINT: all stop here
                 save(step)
-                raise multiprocess.PreemptedError(
-                    f"stopped at step {step} on a preemption notice (SIGTERM); checkpoint saved "
-                    f"in {checkpoints.directory}. Run the same command again to resume."
-                )
+                raise multiprocess.PreemptedError(step)
             if step % config.train.checkpoint_every == 0 and step < total_steps:
                 save(step)
             every = config.train.eval_every
@@ -271,8 +272,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     finally:
         watchdog.close()
         progress.close()
+        writer.flush()
     result = None
     if config.train.eval_at_end:
         result = multiprocess.run_on_main(functools.partial(run_evaluation, step), "eval_final")
     checkpoints.close()
+    writer.close()
     return result or {}

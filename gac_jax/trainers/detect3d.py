@@ -158,7 +158,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
         model, tx, constants, loss_config(config), config, mesh, state_sharding
     )
     evaluator = make_evaluator(config, model, constants, root, config.data.num_workers)
-    writer = MetricsWriter(workdir, enabled=is_main, resume_step=start_step)
+    writer = MetricsWriter(
+        workdir, is_main, resume_step=start_step, tensorboard=config.log.tensorboard
+    )
     progress = Progress(total_steps, start_step, config.data.batch_size, enabled=is_main)
 
     def save(step: int) -> None:
@@ -176,13 +178,15 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
             writer.write(step, kind="eval", **out)
             with open(workdir / "results" / f"step_{step}" / "metrics.json", "w") as f:
                 json.dump(out, f, indent=2)
-            save_evaluation_pictures(
+            pictures = save_evaluation_pictures(
                 evaluator.source, result_dir, config.eval.num_pictures, classes
             )
+            writer.pictures(step, pictures)
         return out
 
     # Loop. In a multi-process run the watchdog stops a process whose peers hang.
     hint = f"Restart all processes to resume from the last checkpoint in {checkpoints.directory}."
+    multiprocess.settings.peer_lost_hint = hint  # also for losses seen outside a step
     watchdog = multiprocess.ProgressWatchdog(hint=hint)
     compile_t0 = time.perf_counter()
     step = start_step
@@ -204,12 +208,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
                     {"cls": float(m["cls_loss"]), "reg": float(m["reg_loss"])},
                 )
                 writer.write(step, lr=lr, **{k: float(v) for k, v in m.items()}, **stats)
-            if multiprocess.preemption_requested(step):  # SIGTERM to any process: all stop here
+            if multiprocess.preemption_requested(step):  # SIGTERM/SIGINT: all stop here
                 save(step)
-                raise multiprocess.PreemptedError(
-                    f"stopped at step {step} on a preemption notice (SIGTERM); checkpoint saved "
-                    f"in {checkpoints.directory}. Run the same command again to resume."
-                )
+                raise multiprocess.PreemptedError(step)
             if step % config.train.checkpoint_every == 0 and step < total_steps:
                 save(step)
             if (
@@ -230,8 +231,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     finally:
         watchdog.close()
         progress.close()
+        writer.flush()
     result = None
     if config.train.eval_at_end:
         result = multiprocess.run_on_main(functools.partial(run_evaluation, step), "eval_final")
     checkpoints.close()
+    writer.close()
     return result or {}

@@ -37,6 +37,7 @@ from gac_jax.data.kitti import write_calib, write_label, write_split
 from gac_jax.data.synthetic import calibration
 from gac_jax.data.synthetic.frame import frame_rig, make_frame
 from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
+from gac_jax.data.worker_lifetime import exit_with_parent
 
 FORMAT_VERSION = 1  # bump whenever the generated content changes (it keys idempotence)
 MARKER = ".synthetic_in_progress.json"
@@ -202,6 +203,7 @@ def _write_frame(job: _Job, index: int) -> float:
 
 def _init_worker() -> None:
     cv2.setNumThreads(1)
+    exit_with_parent()  # the pool never outlives a killed generator (nor its fork server)
 
 
 @dataclasses.dataclass
