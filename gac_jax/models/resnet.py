@@ -28,7 +28,9 @@ variance in ``running_var``, Flax the biased one: a factor n/(n-1), negligible h
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+import contextvars
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import jax
@@ -36,6 +38,25 @@ import jax.numpy as jnp
 from flax import linen as nn
 
 from gac_jax.models.initializers import torchvision_resnet_kernel_init
+from gac_jax.models.max_pool import max_pool
+
+_PLAIN_FORMULATION = contextvars.ContextVar("gac_jax_resnet_plain_formulation", default=False)
+
+
+@contextlib.contextmanager
+def plain_formulation() -> Iterator[None]:
+    """Within this block, ResNets *traced* use the plain Flax ops (``nn.max_pool``, ...).
+
+    The default formulation computes the same values and gradients but runs faster on
+    XLA:CPU (see :mod:`gac_jax.models.max_pool`); benchmarks and tests use this switch to
+    compare the two. It acts at trace time: jit (or ``lower``) inside the block.
+    """
+    token = _PLAIN_FORMULATION.set(True)
+    try:
+        yield
+    finally:
+        _PLAIN_FORMULATION.reset(token)
+
 
 # depth -> (block kind, blocks per stage)
 RESNET_SPECS: dict[int, tuple[str, tuple[int, int, int, int]]] = {
@@ -197,7 +218,8 @@ class ResNet(nn.Module):
 
         x = _conv(self.width, 7, 2, dt, pdt, "conv1")(images)
         x = nn.relu(_batch_norm(train, dt, pdt, "bn1")(x))
-        x = nn.max_pool(x, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
+        pool = nn.max_pool if _PLAIN_FORMULATION.get() else max_pool
+        x = pool(x, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
 
         outputs: dict[str, jax.Array] = {}
         for stage in range(self.num_stages):
