@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 from flax import linen as nn
 
+from gac_jax.models import stride2_conv
 from gac_jax.models.initializers import torchvision_resnet_kernel_init
 from gac_jax.models.max_pool import max_pool
 
@@ -48,7 +49,9 @@ def plain_formulation() -> Iterator[None]:
     """Within this block, ResNets *traced* use the plain Flax ops (``nn.max_pool``, ...).
 
     The default formulation computes the same values and gradients but runs faster on
-    XLA:CPU (see :mod:`gac_jax.models.max_pool`); benchmarks and tests use this switch to
+    XLA:CPU: the stem max-pool's gradient (:mod:`gac_jax.models.max_pool`) and the stem
+    convolution as a space-to-depth stride-1 convolution (:mod:`gac_jax.models.stride2_conv`,
+    same sum in another order); benchmarks and tests use this switch to
     compare the two. It acts at trace time: jit (or ``lower``) inside the block.
     """
     token = _PLAIN_FORMULATION.set(True)
@@ -109,7 +112,13 @@ def _batch_norm(train: bool, dtype: Any, param_dtype: Any, name: str, **kwargs) 
 
 
 def _conv(
-    features: int, kernel: int, stride: int, dtype: Any, param_dtype: Any, name: str
+    features: int,
+    kernel: int,
+    stride: int,
+    dtype: Any,
+    param_dtype: Any,
+    name: str,
+    conv_general_dilated: Any = None,
 ) -> nn.Conv:
     pad = (kernel - 1) // 2
     return nn.Conv(
@@ -122,6 +131,7 @@ def _conv(
         dtype=dtype,
         param_dtype=param_dtype,
         name=name,
+        conv_general_dilated=conv_general_dilated,
     )
 
 
@@ -216,9 +226,11 @@ class ResNet(nn.Module):
         block_cls = Bottleneck if kind == "bottleneck" else BasicBlock
         dt, pdt = self.dtype, self.param_dtype
 
-        x = _conv(self.width, 7, 2, dt, pdt, "conv1")(images)
+        plain = _PLAIN_FORMULATION.get()
+        stem_conv = None if plain else stride2_conv.conv_general_dilated
+        x = _conv(self.width, 7, 2, dt, pdt, "conv1", stem_conv)(images)
         x = nn.relu(_batch_norm(train, dt, pdt, "bn1")(x))
-        pool = nn.max_pool if _PLAIN_FORMULATION.get() else max_pool
+        pool = nn.max_pool if plain else max_pool
         x = pool(x, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
 
         outputs: dict[str, jax.Array] = {}
