@@ -43,7 +43,7 @@ def _jax_detector(case: dict, plain: bool) -> dict:
     loss_cfg, fopts = builders.loss_config(c), detect3d.filter_options(c)
     key = jax.random.key(0)
 
-    def forward(params, batch_stats):
+    def forward(params, batch_stats, batch):  # the batch is an argument: no constant folding
         return model.apply(
             {"params": params, "batch_stats": batch_stats},
             batch["image"],
@@ -53,8 +53,8 @@ def _jax_detector(case: dict, plain: bool) -> dict:
             mutable=["batch_stats"],
         )
 
-    def loss_fn(params, batch_stats):
-        outputs, _ = forward(params, batch_stats)
+    def loss_fn(params, batch_stats, batch):
+        outputs, _ = forward(params, batch_stats, batch)
         mask = ground_mask_from_constants(constants, batch["P2"], **fopts)
         mask = mask if c.anchors.filter else None
         return detection_loss(outputs, batch, constants, mask, loss_cfg)[0]
@@ -65,8 +65,8 @@ def _jax_detector(case: dict, plain: bool) -> dict:
     state = jax.tree.map(lambda x: x.copy(), case["state"])
     p, bs = state.params, state.batch_stats
     with plain_formulation() if plain else contextlib.nullcontext():
-        fwd = jax.jit(forward).lower(p, bs).compile()
-        grad = jax.jit(jax.value_and_grad(loss_fn)).lower(p, bs).compile()
+        fwd = jax.jit(forward).lower(p, bs, batch).compile()
+        grad = jax.jit(jax.value_and_grad(loss_fn)).lower(p, bs, batch).compile()
         step = step.lower(state, batch).compile()
     holder = {"state": jax.tree.map(lambda x: x.copy(), state)}  # the step donates it
 
@@ -75,8 +75,8 @@ def _jax_detector(case: dict, plain: bool) -> dict:
         return metrics["loss"]
 
     return {
-        "forward": lambda: fwd(p, bs),
-        "fwd+bwd": lambda: grad(p, bs),
+        "forward": lambda: fwd(p, bs, batch),
+        "fwd+bwd": lambda: grad(p, bs, batch),
         "step": run_step,
         "params": int(sum(x.size for x in jax.tree.leaves(p))),
     }
@@ -109,7 +109,7 @@ def _jax_depth(plain: bool, batch_size: int = 8) -> dict:
     images, P, gt = inputs(config, batch_size, config.data.width, seed=batch_size)
     batch = parallel.to_global({"image": images, "P2": P, "depth": gt}, mesh)
 
-    def forward(params, batch_stats):
+    def forward(params, batch_stats, batch):
         return model.apply(
             {"params": params, "batch_stats": batch_stats},
             batch["image"],
@@ -118,14 +118,14 @@ def _jax_depth(plain: bool, batch_size: int = 8) -> dict:
             mutable=["batch_stats"],
         )
 
-    def loss_fn(params, batch_stats):
-        outputs, _ = forward(params, batch_stats)
+    def loss_fn(params, batch_stats, batch):
+        outputs, _ = forward(params, batch_stats, batch)
         return depth_loss(outputs["log_depth"], batch["depth"], batch["image"], **opts)[0]
 
     p, bs = state.params, state.batch_stats
     with plain_formulation() if plain else contextlib.nullcontext():
-        fwd = jax.jit(forward).lower(p, bs).compile()
-        grad = jax.jit(jax.value_and_grad(loss_fn)).lower(p, bs).compile()
+        fwd = jax.jit(forward).lower(p, bs, batch).compile()
+        grad = jax.jit(jax.value_and_grad(loss_fn)).lower(p, bs, batch).compile()
         step = step.lower(state, batch).compile()
     holder = {"state": jax.tree.map(lambda x: x.copy(), state)}
 
@@ -134,8 +134,8 @@ def _jax_depth(plain: bool, batch_size: int = 8) -> dict:
         return metrics["loss"]
 
     return {
-        "forward": lambda: fwd(p, bs),
-        "fwd+bwd": lambda: grad(p, bs),
+        "forward": lambda: fwd(p, bs, batch),
+        "fwd+bwd": lambda: grad(p, bs, batch),
         "step": run_step,
         "params": int(sum(x.size for x in jax.tree.leaves(p))),
         "input": f"{batch_size}x{config.data.height}x{config.data.width}",
