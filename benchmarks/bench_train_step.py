@@ -8,6 +8,16 @@ memory (``ru_maxrss``) belongs to that case alone. Inputs are random images
 with real-looking calibration and random ground truth; the step is the
 trainer's own jitted step (``gac_jax.trainers.detect3d.make_train_step``).
 Reports the median step time over ``--steps`` steps after the compile step.
+
+Side by side (``--compare``): one process times, interleaved round by round, the default
+detector (and the default depth U-Net) as JAX with the plain Flax ops (``--compare`` traces
+them under :func:`gac_jax.models.resnet.plain_formulation`: before), JAX as shipped (after)
+and the PyTorch twin of the detector (``tests/torch_reference_models.py``; the optional
+``.[torch]`` extra, skipped with a note when torch is missing): forward (train mode),
+forward + backward (gradient of the loss) and the full train step (+ AdamW and clipping),
+medians of wall and process-CPU seconds::
+
+    python benchmarks/bench_train_step.py --compare --rounds 5
 """
 
 from __future__ import annotations
@@ -32,12 +42,11 @@ CONFIGS = {
 }
 
 
-def run_case(config_spec: str, batch_size: int, steps: int) -> dict:
-    import resource
+def build_detector_case(config_spec: str, batch_size: int) -> dict:
+    """Model, optimizer, train state, trainer step and a random batch for one detector config."""
     import time
 
     import jax
-    import jax.numpy as jnp
     import numpy as np
 
     from gac_jax import parallel
@@ -102,6 +111,24 @@ def run_case(config_spec: str, batch_size: int, steps: int) -> dict:
         "gt_alpha": rng.uniform(-3, 3, (batch_size, m)).astype(np.float32),
     }
     batch = parallel.to_global(batch, mesh)
+    return dict(
+        config=c, model=model, constants=constants, tx=tx, mesh=mesh, state=state,
+        state_sharding=jax.tree.map(lambda _: rep, state), batch=batch, step=step, init_s=init_s,
+        num_anchors=a,
+    )  # fmt: skip
+
+
+def run_case(config_spec: str, batch_size: int, steps: int) -> dict:
+    import resource
+    import time
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    case = build_detector_case(config_spec, batch_size)
+    c, state, batch, step = case["config"], case["state"], case["batch"], case["step"]
+    h, w, init_s = c.data.height, c.data.width, case["init_s"]
     t0 = time.perf_counter()
     compiled = step.lower(state, batch).compile()
     compile_s = time.perf_counter() - t0
@@ -138,7 +165,20 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3)
     parser.add_argument("--json", help="write the results here")
     parser.add_argument("--case", help=argparse.SUPPRESS)  # internal: run one case
+    parser.add_argument("--compare", action="store_true", help="side by side (see above)")
+    parser.add_argument("--rounds", type=int, default=5, help="--compare: timed rounds")
+    parser.add_argument(
+        "--networks", default="detector,depth", help="--compare: detector and/or depth"
+    )
+    parser.add_argument("--no-torch", action="store_true", help="--compare: JAX only")
     args = parser.parse_args()
+    if args.compare:
+        from train_step_side_by_side import compare  # noqa: E402  (benchmarks/ on sys.path)
+
+        report = compare(args.networks.split(","), args.rounds, not args.no_torch)
+        if args.json:
+            Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+        return
     if args.case:
         spec, bs = args.case.rsplit("@", 1)
         print(json.dumps(run_case(spec, int(bs), args.steps)))

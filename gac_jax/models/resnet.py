@@ -28,14 +28,38 @@ variance in ``running_var``, Flax the biased one: a factor n/(n-1), negligible h
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import contextlib
+import contextvars
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import linen as nn
 
+from gac_jax.models import stride2_conv
 from gac_jax.models.initializers import torchvision_resnet_kernel_init
+from gac_jax.models.max_pool import max_pool
+
+_PLAIN_FORMULATION = contextvars.ContextVar("gac_jax_resnet_plain_formulation", default=False)
+
+
+@contextlib.contextmanager
+def plain_formulation() -> Iterator[None]:
+    """Within this block, ResNets *traced* use the plain Flax ops (``nn.max_pool``, ...).
+
+    The default formulation computes the same values and gradients but runs faster on
+    XLA:CPU: the stem max-pool's gradient (:mod:`gac_jax.models.max_pool`) and the stem
+    convolution as a space-to-depth stride-1 convolution (:mod:`gac_jax.models.stride2_conv`,
+    same sum in another order); benchmarks and tests use this switch to
+    compare the two. It acts at trace time: jit (or ``lower``) inside the block.
+    """
+    token = _PLAIN_FORMULATION.set(True)
+    try:
+        yield
+    finally:
+        _PLAIN_FORMULATION.reset(token)
+
 
 # depth -> (block kind, blocks per stage)
 RESNET_SPECS: dict[int, tuple[str, tuple[int, int, int, int]]] = {
@@ -88,7 +112,13 @@ def _batch_norm(train: bool, dtype: Any, param_dtype: Any, name: str, **kwargs) 
 
 
 def _conv(
-    features: int, kernel: int, stride: int, dtype: Any, param_dtype: Any, name: str
+    features: int,
+    kernel: int,
+    stride: int,
+    dtype: Any,
+    param_dtype: Any,
+    name: str,
+    conv_general_dilated: Any = None,
 ) -> nn.Conv:
     pad = (kernel - 1) // 2
     return nn.Conv(
@@ -101,6 +131,7 @@ def _conv(
         dtype=dtype,
         param_dtype=param_dtype,
         name=name,
+        conv_general_dilated=conv_general_dilated,
     )
 
 
@@ -195,9 +226,12 @@ class ResNet(nn.Module):
         block_cls = Bottleneck if kind == "bottleneck" else BasicBlock
         dt, pdt = self.dtype, self.param_dtype
 
-        x = _conv(self.width, 7, 2, dt, pdt, "conv1")(images)
+        plain = _PLAIN_FORMULATION.get()
+        stem_conv = None if plain else stride2_conv.conv_general_dilated
+        x = _conv(self.width, 7, 2, dt, pdt, "conv1", stem_conv)(images)
         x = nn.relu(_batch_norm(train, dt, pdt, "bn1")(x))
-        x = nn.max_pool(x, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
+        pool = nn.max_pool if plain else max_pool
+        x = pool(x, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
 
         outputs: dict[str, jax.Array] = {}
         for stage in range(self.num_stages):
