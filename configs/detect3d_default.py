@@ -16,10 +16,11 @@ over several seeds (docs/ablations.md).
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import ml_collections
 
-from gac_jax.config import REPO_CONFIGS, load_config
+from gac_jax.config import load_config
 
 
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
@@ -28,7 +29,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # none of the settings below touches what those variants set.
     passed = sorted(variants - {"tiny"})
     try:
-        c = load_config(str(REPO_CONFIGS / "detect3d_kitti.py") + ":" + ",".join(passed))
+        c = load_config(str(Path(__file__).with_name("detect3d_kitti.py")) + ":" + ",".join(passed))
     except ValueError as e:
         raise ValueError(f"{e} (or 'tiny' here)") from None
     c.data.source = "synthetic"
