@@ -147,3 +147,88 @@ def test_converter_refuses_the_new_heads():
         with pytest.raises(pretrained.WeightsError, match="regression_block"):
             convert.gac_model_settings({}, load_config(f"{DEFAULT}:tiny,{row}"))
     assert convert.gac_model_settings({}, load_config(f"{DEFAULT}:tiny,ohem"))["depth"] == 18
+
+
+# ----------------------------------------------------------------------------- the report
+
+
+def _report_module():
+    import importlib
+    import sys
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    return importlib.import_module("ablation_report")
+
+
+def test_paper_numbers_in_the_report_match_the_paper_source():
+    rep = _report_module()
+    tex = REPO.parent / "shared" / "spec" / "paper_gac.tex"
+    if not tex.exists():
+        pytest.skip(f"paper source not found at {tex}")
+    assert rep.paper_table3_from_tex(tex.read_text()) == rep.PAPER_TABLE3
+
+
+def _fake_run(workdir: Path, values: dict | None, step: int = 4, failed: bool = False):
+    """A workdir as the trainer + runner leave it: metrics.jsonl, results, markers."""
+    workdir.mkdir(parents=True)
+    lines = [json.dumps({"step": s, "kind": "train", "loss": 1.0}) for s in range(1, step + 1)]
+    (workdir / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    if failed:
+        (workdir / "ablation_failed.json").write_text(json.dumps({"returncode": 1}))
+    if values is None:
+        return
+    ap = {
+        "Car": {
+            "0.70": {"bbox": [0, values["2D@0.7"], 0], "3d": [0, values["3D@0.7"], 0]},
+            "0.50": {"bev": [0, values["BEV@0.5"], 0], "3d": [0, values["3D@0.5"], 0]},
+        }
+    }  # fmt: skip
+    result = workdir / "results" / f"step_{step}"
+    result.mkdir(parents=True)
+    (result / "metrics.json").write_text(json.dumps({"metrics": {"ap40": ap, "ap11": {}}}))
+    (workdir / "ablation_run.json").write_text(json.dumps({"final_step": step, "wall_s": 60.0}))
+
+
+def test_report_statistics_and_unfinished_seeds(tmp_path):
+    rep = _report_module()
+    out = tmp_path / "out"
+    names = ("3D@0.7", "3D@0.5", "BEV@0.5", "2D@0.7")
+    base = [(10.0, 40.0, 45.0, 70.0), (12.0, 42.0, 47.0, 71.0), (11.0, 41.0, 46.0, 72.0)]
+    conv = [(13.5, 30.0, 46.0, 70.5), (14.0, 31.0, 47.5, 71.5), None]
+    for s in range(3):
+        _fake_run(
+            out / "detect3d" / "baseline" / f"seed_{s}", dict(zip(names, base[s], strict=True))
+        )
+    _fake_run(out / "detect3d" / "conv" / "seed_0", dict(zip(names, conv[0], strict=True)))
+    _fake_run(out / "detect3d" / "conv" / "seed_1", dict(zip(names, conv[1], strict=True)))
+    _fake_run(out / "detect3d" / "conv" / "seed_2", None, step=7)  # interrupted
+    _fake_run(out / "detect3d" / "ohem" / "seed_0", None, step=3, failed=True)
+    rows = ["baseline", "conv", "ohem", "deformable"]
+    plan = {
+        "config": "configs/detect3d_default.py",
+        "overrides": [],
+        "rows": rows,
+        "seeds": [0, 1, 2],
+    }
+    (out / "plan.json").write_text(json.dumps({"detect3d": plan}))
+    text = rep.render(out)
+    b = np.asarray(base, np.float64)
+    mean, std = b.mean(0), b.std(0, ddof=1)
+    cell = f"{mean[1]:.2f} ± {std[1]:.2f} [{b[:, 1].min():.2f}, {b[:, 1].max():.2f}]"
+    assert cell in text  # 3D@0.5 of the baseline over its three seeds
+    c = np.asarray(conv[:2], np.float64)
+    assert f"{c[:, 0].mean():.2f} ± {c[:, 0].std(ddof=1):.2f} [13.50, 14.00] (2 of 3 seeds)" in text
+    assert "| `conv` | 2 | interrupted (step 7) |" in text
+    assert "| `ohem` | 0 | failed (step 3) |" in text and "| `ohem` | 1 | not started |" in text
+    assert "| `deformable` | 0 | not started |" in text
+    assert "no finished run" in text and "0/3 |" in text
+    # conv vs baseline: 3D@0.5 -10.5 beyond the spread, the paper's sign (-1.01); 3D@0.7
+    # +2.75 beyond the spread, opposite to the paper (-0.90); BEV/2D within the spread.
+    assert "`conv` 3D@0.5 -10.50 (worse, beyond the seed spread; paper -1.01, same sign)" in text
+    assert (
+        "`conv` 3D@0.7 +2.75 (better, beyond the seed spread; paper -0.90, opposite sign)" in text
+    )
+    assert "`conv` BEV@0.5 +0.75 (better, within the seed spread)" in text
+    assert "`conv` 2D@0.7 +0.00 (equal means, within the seed spread)" in text
+    assert "Not compared (fewer than 2 finished seeds" in text and "`ohem`, `deformable`" in text
+    assert "## depth\n\nNot run yet" in text
