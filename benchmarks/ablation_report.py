@@ -18,6 +18,7 @@ from pathlib import Path
 DONE_MARKER = "ablation_run.json"
 FAILED_MARKER = "ablation_failed.json"
 PLAN = "plan.json"
+REPO = Path(__file__).resolve().parents[1]
 
 # Paper Table 3 ("3D Detection Ablation Study Results of Car on KITTI Validation Set",
 # paper_gac.tex, tab:ablation_study), 3D AP|R40 easy / moderate / hard in %.
@@ -261,7 +262,7 @@ def task_section(task: Task, out: Path, plan: dict) -> str:
     lines.append(
         f"Config `{plan['config']}` (row = variant), overrides: `{extra}`; seeds "
         f"{', '.join(map(str, seeds))} (the seed sets the model init, dropout and the data "
-        f"order; the generated dataset is the same for all). Runs in `{out / task.name}`:\n"
+        f"order; the generated dataset is the same for all). Runs in `{shown(out / task.name)}`:\n"
     )
     if plan.get("command"):
         lines.append(f"```bash\n{plan['command']}\n```\n")
@@ -307,6 +308,12 @@ def task_section(task: Task, out: Path, plan: dict) -> str:
     return "\n".join(lines)
 
 
+def shown(path: Path) -> str:
+    """``path`` relative to the repository when it is inside it (stable across checkouts)."""
+    path = Path(path).resolve()
+    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else str(path)
+
+
 def read_plan(out: Path) -> dict:
     path = Path(out) / PLAN
     return json.loads(path.read_text()) if path.exists() else {}
@@ -323,14 +330,72 @@ def render(out: Path) -> str:
         "These are numbers **on the embedded generated dataset**, not KITTI: they say whether "
         "each design choice helps here and by more than the seed-to-seed spread; the paper's "
         "columns are its KITTI numbers, for the direction of each difference only. A run's "
-        "note gives its training wall time and CPU.\n",
+        "note gives its training wall time (all attempts) and CPU.\n",
+        VARIANTS_TEXT,
     ]
     for name, task in TASKS.items():
         if name in plan:
             parts.append(task_section(task, Path(out), plan[name]))
         else:
-            parts.append(f"## {name}\n\nNot run yet (no plan for `{name}` in `{out}`).\n")
+            rows = ",".join(task.rows)
+            parts.append(
+                f"## {name}\n\nNot run yet (no `{name}` runs in `{shown(out)}`). Command:\n\n"
+                f"```bash\npython benchmarks/ablation_table.py --task {name} --rows {rows} "
+                f"--seeds 0,1,2 --out workdirs/ablations\n```\n"
+            )
     return "\n".join(parts)
+
+
+VARIANTS_TEXT = """## The rows
+
+Detection rows are variants of `configs/detect3d_default.py` (the same names work on
+`configs/detect3d_kitti.py`, e.g. `configs/detect3d_kitti.py:ohem`):
+"""
+
+VARIANT_ROWS = (
+    (
+        "baseline",
+        "nothing: ground-aware convolution (GAC) in the regression branch, ground-plane anchor "
+        "filter in training and at test",
+    ),
+    ("nofilter", "`anchors.filter=False`: every anchor is used in training and at test"),
+    (
+        "ohem",
+        "no ground-plane filter; in training, per image, the easiest half of the negative "
+        "anchors leaves the loss (`loss.ohem_drop_fraction=0.5`); no filter at test",
+    ),
+    ("conv", "GAC replaced by conv3x3 C->C + ReLU"),
+    ("disparity", "GAC replaced by conv3x3 over [disparity prior map, features] (C+1 -> C) + ReLU"),
+    (
+        "deformable",
+        "GAC replaced by a modulated deformable conv v2 3x3 C->C + ReLU "
+        "(`gac_jax/models/deformable_conv.py`): per-pixel tap offsets and masks from a "
+        "zero-initialised 3x3 conv as in DCNv2, so it starts as half a plain conv",
+    ),
+)
+VARIANTS_TEXT += "\n| row | paper Table 3 | what changes |\n|---|---|---|\n" + "".join(
+    f"| `{row}` | {PAPER_TABLE3_NAMES[row]} | {text} |\n" for row, text in VARIANT_ROWS
+)
+VARIANTS_TEXT += """
+OHEM exactly (`gac_jax/detection_loss.py`, `ohem_negative_mask`): the paper says only "we
+filter out half of the easy negative anchors during training". Here, per image `j`, after
+the usual assignment (positive at IoU >= 0.5, negative below 0.4, ignored between), the
+`floor(0.5 * num_neg_j)` negatives with the lowest classification loss (the focal loss of the
+anchor summed over classes, computed before the reference's zeroing of losses below 1e-5;
+among equal losses the lower anchor index goes first) are treated like ignored anchors: they
+add nothing to the focal-loss sum and are not counted in the normaliser `num_pos_j +
+num_neg_j`, just as anchors removed by the ground filter are not. The selection is per image
+(not per batch: the ground filter, which removes about half of the negatives, is per image
+too, and a per-image choice does not depend on how a batch is split over devices), it carries
+no gradient, and positives, ignored anchors and the regression terms are unchanged. It acts on
+top of the focal loss, which already down-weights easy negatives by `p^2`: the dropped half
+contributes little loss anyway, so the main effect is the smaller normaliser (about twice the
+classification loss per anchor, as with the ground filter) and that the easiest half gives no
+gradient at all.
+
+Depth rows: `base` = `configs/depth_default.py:base` (the paper's "Base U-Net", no GAC) and
+`gac` = `configs/depth_default.py` (the GAC U-Net).
+"""
 
 
 def paper_table3_from_tex(tex: str) -> dict[str, dict[str, tuple[float, ...]]]:

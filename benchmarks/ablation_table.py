@@ -96,10 +96,12 @@ def update_plan(out: Path, task: str, entry: dict) -> dict:
     if old is not None:
         for key in ("config", "overrides"):
             if old[key] != entry[key]:
-                raise SystemExit(
+                print(
                     f"error: {path} holds {task} runs with {key}={old[key]!r}, not "
-                    f"{entry[key]!r}; use another --out to run a different set-up"
+                    f"{entry[key]!r}; use another --out to run a different set-up",
+                    file=sys.stderr,
                 )
+                raise SystemExit(2)
         entry = dict(
             old,
             rows=old["rows"] + [r for r in entry["rows"] if r not in old["rows"]],
