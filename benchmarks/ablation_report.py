@@ -145,9 +145,12 @@ def read_run(task: Task, workdir: Path, seed: int) -> RunResult:
             note = f"{marker['wall_s'] / 60:.0f} min, {note}".rstrip(", ")
         return RunResult(seed, "done", values, step, note)
     if (workdir / FAILED_MARKER).exists():
-        failed = json.loads((workdir / FAILED_MARKER).read_text())
+        code = json.loads((workdir / FAILED_MARKER).read_text())["returncode"]
         step = last_train_step(workdir)
-        return RunResult(seed, "failed", step=step, note=f"exit {failed['returncode']}")
+        if code is not None and (code < 0 or code == 75):  # signal / SIGTERM stop: resumable
+            note = f"killed by signal {-code}" if code < 0 else "stopped on SIGTERM (exit 75)"
+            return RunResult(seed, "interrupted", step=step, note=note)
+        return RunResult(seed, "failed", step=step, note=f"exit {code}")
     if workdir.exists():
         return RunResult(seed, "interrupted", step=last_train_step(workdir))
     return RunResult(seed, "not started")
