@@ -17,6 +17,19 @@ with the batch sharded over devices computes exactly the single-device loss
 focal loss and summed per-positive regression losses by the batch's number of
 positives instead.
 
+Online hard example mining (``ohem_drop_fraction = f > 0``, the paper's Table 3 row
+"w OHEM"): per image, the ``floor(f * num_neg_j)`` negative anchors with the lowest
+classification loss (the per-anchor focal loss summed over classes, before the
+``focal_min_loss`` zeroing; ties broken towards the lower anchor index) are left out of
+the loss exactly as if they were ignored: they add nothing to ``cls_sum`` and are not
+counted in ``num_neg`` (so under ``"reference"`` normalisation the per-image divisor
+``num_pos + num_neg`` shrinks with them, as it does for anchors the ground filter
+removes). The selection is per image, not per batch, so it does not depend on how a
+batch is split over devices, and it is a constant of the step (no gradient flows through
+the ranking). It acts on top of the focal loss, which already down-weights easy negatives
+by ``p^gamma``; positives, ignored anchors and the regression terms are untouched.
+:func:`ohem_negative_mask` is the selection alone.
+
 :func:`detection_loss_terms` returns the per-image partial sums and
 :func:`combine_loss_terms` the batch formula, so any split of a batch can be
 recombined exactly.
@@ -53,6 +66,8 @@ class DetectionLossConfig:
       regression_weights: 13 weights of [12 regression terms, sign bit].
       pos_iou, neg_iou, match_low_quality: assignment (:func:`assign_anchors`).
       normalize_by: ``"reference"`` or ``"num_positives"`` (module docstring).
+      ohem_drop_fraction: fraction of each image's negatives, the easiest by
+        classification loss, left out of the loss (0 = off; the paper's OHEM row: 0.5).
     """
 
     balance_weights: tuple[float, ...] = (20.0,)
@@ -65,6 +80,7 @@ class DetectionLossConfig:
     neg_iou: float = 0.4
     match_low_quality: bool = False
     normalize_by: str = "reference"
+    ohem_drop_fraction: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "balance_weights", tuple(float(w) for w in self.balance_weights))
@@ -80,6 +96,8 @@ class DetectionLossConfig:
             raise ValueError(
                 f"normalize_by must be one of {NORMALIZATIONS}, got {self.normalize_by!r}"
             )
+        if not 0.0 <= self.ohem_drop_fraction < 1.0:
+            raise ValueError(f"ohem_drop_fraction must be in [0, 1), got {self.ohem_drop_fraction}")
         if not self.neg_iou <= self.pos_iou:
             raise ValueError(f"neg_iou {self.neg_iou} must be <= pos_iou {self.pos_iou}")
 
@@ -136,6 +154,34 @@ def binary_cross_entropy_with_logits(logits: jax.Array, targets: jax.Array) -> j
     return t * jax.nn.softplus(-x) + (1.0 - t) * jax.nn.softplus(x)
 
 
+def ohem_negative_mask(
+    anchor_loss: jax.Array, negative: jax.Array, drop_fraction: float
+) -> jax.Array:
+    """Negatives kept by online hard example mining (per image; pure, jit-able).
+
+    Args:
+      anchor_loss: (B, N) classification loss per anchor (only negatives' values matter).
+      negative: (B, N) bool, the anchors that are negatives (positives, ignored and padded
+        anchors are False and never counted or dropped).
+      drop_fraction: f in [0, 1): drop ``floor(f * num_neg_j)`` negatives of image ``j``.
+
+    Returns:
+      (B, N) bool: ``negative`` minus, per image, the ``floor(f * num_neg_j)`` negatives with
+      the lowest loss; among equal losses the lower anchor index is dropped first.
+    """
+    loss = jax.lax.stop_gradient(jnp.asarray(anchor_loss, jnp.float32))
+    negative = jnp.asarray(negative, bool)
+    num_anchors = negative.shape[-1]
+    num_drop = jnp.floor(drop_fraction * negative.sum(axis=-1)).astype(jnp.int32)  # (B,)
+    # Negatives first, in increasing loss; a stable sort keeps index order among ties.
+    # Non-negatives are keyed +inf and sorted after all of them (index order again).
+    key = jnp.where(negative, loss, jnp.inf)
+    order = jnp.argsort(key, axis=-1, stable=True)
+    positions = jnp.broadcast_to(jnp.arange(num_anchors, dtype=jnp.int32), key.shape)
+    rank = jnp.zeros_like(positions).at[jnp.arange(key.shape[0])[:, None], order].set(positions)
+    return negative & (rank >= num_drop[:, None])
+
+
 def _take(values: jax.Array, index: jax.Array) -> jax.Array:
     """``values`` (B, M, ...) gathered at ``index`` (B, N) along M -> (B, N, ...)."""
     idx = index.reshape(index.shape + (1,) * (values.ndim - 2))
@@ -163,7 +209,7 @@ def detection_loss_terms(
     Returns:
       dict of per-image arrays: ``'cls_sum'`` (B,) summed focal loss, ``'reg_sum'``
       (B, 13) weighted loss terms summed over positives, ``'num_pos'``, ``'num_neg'``,
-      ``'num_gt'`` (B,) float32 counts.
+      ``'num_gt'`` (B,) float32 counts (``num_neg`` without the negatives OHEM dropped).
     """
     cls_logits = jnp.asarray(outputs["cls_logits"], jnp.float32)
     num_classes = cls_logits.shape[-1]
@@ -191,13 +237,27 @@ def detection_loss_terms(
     cls_targets = jnp.where(
         (assignment.labels == IGNORE)[..., None], -1.0, (positive[..., None] & onehot) * 1.0
     )
-    focal = sigmoid_focal_loss(
-        cls_logits,
-        cls_targets,
-        jnp.asarray(config.balance_weights, jnp.float32),
-        config.gamma,
-        config.focal_min_loss,
-    )
+    negative = assignment.negative
+    if config.ohem_drop_fraction > 0.0:
+        focal = sigmoid_focal_loss(
+            cls_logits,
+            cls_targets,
+            jnp.asarray(config.balance_weights, jnp.float32),
+            config.gamma,
+            0.0,
+        )
+        kept = ohem_negative_mask(focal.sum(axis=-1), negative, config.ohem_drop_fraction)
+        dropped = negative & ~kept
+        focal = jnp.where(dropped[..., None] | (focal < config.focal_min_loss), 0.0, focal)
+        negative = kept
+    else:
+        focal = sigmoid_focal_loss(
+            cls_logits,
+            cls_targets,
+            jnp.asarray(config.balance_weights, jnp.float32),
+            config.gamma,
+            config.focal_min_loss,
+        )
 
     # Regression targets of every anchor's matched GT (garbage is masked to 0 off positives).
     anchors = jnp.broadcast_to(constants.anchor_boxes[None], positive.shape + (4,))
@@ -230,7 +290,7 @@ def detection_loss_terms(
         "cls_sum": focal.sum(axis=(1, 2)),
         "reg_sum": terms.sum(axis=1),
         "num_pos": positive.sum(axis=1).astype(jnp.float32),
-        "num_neg": assignment.negative.sum(axis=1).astype(jnp.float32),
+        "num_neg": negative.sum(axis=1).astype(jnp.float32),
         "num_gt": gt_mask.sum(axis=1).astype(jnp.float32),
     }
 

@@ -102,6 +102,7 @@ def loss_config(config: ml_collections.ConfigDict) -> DetectionLossConfig:
         neg_iou=lc.neg_iou,
         match_low_quality=lc.get("match_low_quality", False),  # absent in older workdirs
         normalize_by=lc.normalize_by,
+        ohem_drop_fraction=lc.get("ohem_drop_fraction", 0.0),  # absent in older workdirs
     )
 
 

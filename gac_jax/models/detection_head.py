@@ -11,7 +11,11 @@ On backbone features F (B,Hf,Wf,C) (ResNet-101 layer3: C = 1024, stride 16):
   - ``'conv'``: conv3x3 C->C + ReLU (the paper's ablation row "w Conv": GAC substituted by a
     basic convolution);
   - ``'disparity_conv'``: conv3x3 over [disparity prior ‖ F] (C+1 -> C) + ReLU (the ablation
-    row "w DisparityConv": convolution with the depth prior as an extra feature map).
+    row "w DisparityConv": convolution with the depth prior as an extra feature map);
+  - ``'deformable'``: modulated deformable conv v2 3x3 C->C + ReLU
+    (:class:`~gac_jax.models.deformable_conv.ModulatedDeformConv`: per-pixel tap offsets and
+    masks from a zero-initialised conv as in DCNv2, so it starts as half a plain conv; the
+    ablation row "w Deformable Conv", the reference ``Yolo3D`` head).
 
 Output layout: the NHWC conv output (B,Hf,Wf,A*D) reshapes to (B, Hf*Wf*A, D), anchor index
 ``(row*Wf + col)*A + a`` and PyTorch channel ``k = a*D + d`` -> anchor ``a``, component ``d``
@@ -20,7 +24,8 @@ Classification components: ``[class_0 .. class_{K-1}, alpha_sign]``; regression 
 ``REGRESSION_COMPONENTS``.
 
 Flax names (see :mod:`gac_jax.models.naming` for the reference-key table): ``cls_conv1``,
-``cls_conv2``, ``cls_out``, ``gac`` (or ``plain_conv`` / ``disparity_conv``), ``reg_conv1``,
+``cls_conv2``, ``cls_out``, ``gac`` (or ``plain_conv`` / ``disparity_conv`` /
+``deformable_conv`` with its ``conv_offset``), ``reg_conv1``,
 ``reg_bn1``, ``reg_conv2``, ``reg_bn2``, ``reg_out``. Layers the paper does not pin use
 PyTorch's default initialisation.
 """
@@ -33,6 +38,7 @@ import jax
 import jax.numpy as jnp
 from flax import linen as nn
 
+from gac_jax.models.deformable_conv import ModulatedDeformConv
 from gac_jax.models.ground_aware_conv import (
     DEFAULT_BASELINE,
     DEFAULT_CAMERA_HEIGHT,
@@ -57,7 +63,7 @@ REGRESSION_COMPONENTS = (
     "l3d",
 )
 NUM_REGRESSION = len(REGRESSION_COMPONENTS)
-REGRESSION_BLOCKS = ("gac", "conv", "disparity_conv")
+REGRESSION_BLOCKS = ("gac", "conv", "disparity_conv", "deformable")
 
 
 class DetectionHead(nn.Module):
@@ -68,7 +74,8 @@ class DetectionHead(nn.Module):
       num_anchors: A anchors per feature cell (32 in the paper configuration).
       cls_features / reg_features: hidden widths of the two branches (512 / 1024).
       dropout_rate: channel-wise (Dropout2d) rate in the classification branch (0.3).
-      regression_block: ``'gac'``, ``'conv'`` or ``'disparity_conv'`` (see module docstring).
+      regression_block: ``'gac'``, ``'conv'``, ``'disparity_conv'`` or ``'deformable'`` (see
+        module docstring).
       stride: feature stride w.r.t. the input image (16), used to scale ``P2``.
       baseline, camera_height, object_height, offset_formula, offset_scale,
         offset_grad_scale: passed to :class:`GroundAwareConv`.
@@ -163,6 +170,11 @@ class DetectionHead(nn.Module):
             outputs["gac_offsets"] = gac["offset_rows"]
         elif self.regression_block == "conv":
             r = nn.relu(self._conv(C, C, "plain_conv")(x))
+        elif self.regression_block == "deformable":
+            dcn = ModulatedDeformConv(
+                C, 3, dtype=self.dtype, param_dtype=self.param_dtype, name="deformable_conv"
+            )
+            r = nn.relu(dcn(x))
         else:
             P2 = jnp.asarray(P2, jnp.float32)
             disp = disparity_prior(H, P2, self.stride, self.baseline, self.camera_height)

@@ -1,0 +1,220 @@
+"""Runs the paper's ablations over several seeds and writes docs/ablations.md.
+
+    # detection, the six rows of the paper's Table 3, three seeds each
+    python benchmarks/ablation_table.py --rows baseline,nofilter,ohem,conv,disparity,deformable \\
+        --seeds 0,1,2 --out workdirs/ablations
+    # depth: Base U-Net vs GAC U-Net
+    python benchmarks/ablation_table.py --task depth --rows base,gac --seeds 0,1 \\
+        --out workdirs/ablations
+    # the report alone, from whatever exists
+    python benchmarks/ablation_table.py --report-only --out workdirs/ablations
+
+One workdir per (row, seed): ``OUT/<task>/<row>/seed_<s>``, trained by ``train.py --task T
+--config CONFIG:<variant> --workdir W seed=<s> [overrides]`` in a child process (its output
+goes to ``W/train.log`` and to this terminal). ``seed`` sets the model init, the dropout keys
+and the training-data order (the generated dataset itself is fixed by
+``data.synthetic.seed``). A run the runner saw finish (exit 0) gets ``W/ablation_run.json``
+and is skipped afterwards; any other workdir is handed to ``train.py`` again, which resumes
+from its last checkpoint (and redoes only the unwritten result files of an interrupted final
+evaluation). ``OUT/plan.json`` records each task's config, overrides, rows and seeds: a later
+call with another config or other overrides for the same task is refused, so one table never
+mixes two set-ups. The report (see ``ablation_report.py``) reads only what the trainer wrote
+and lists unfinished seeds as such.
+
+Rows: detection ``baseline`` (the GAC model), ``nofilter``, ``ohem``, ``conv``, ``disparity``,
+``deformable`` (variants of ``configs/detect3d_default.py``, see ``configs/detect3d_kitti.py``);
+depth ``base`` (``configs/depth_default.py:base``) and ``gac`` (the default). Exit status: 0
+when every requested run finished, 1 if one failed (the others still ran), 2 on bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from ablation_report import (  # noqa: E402  (benchmarks/ on sys.path)
+    DONE_MARKER,
+    FAILED_MARKER,
+    PLAN,
+    TASKS,
+    last_train_step,
+    render,
+    run_dir,
+)
+from machine_info import cpu_model  # noqa: E402
+
+from gac_jax.data.files import atomic_write  # noqa: E402
+
+DEFAULT_CONFIGS = {"detect3d": "configs/detect3d_default.py", "depth": "configs/depth_default.py"}
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--task", choices=sorted(TASKS), default="detect3d")
+    p.add_argument("--rows", help="comma-separated rows (default: all rows of the task)")
+    p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
+    p.add_argument("--out", required=True, help="folder of the run workdirs and plan.json")
+    p.add_argument("--config", help="config file[:variant] (default: the task's default config)")
+    p.add_argument("--report", default=str(REPO / "docs" / "ablations.md"), help="markdown out")
+    p.add_argument("--report-only", action="store_true", help="write the report, train nothing")
+    p.add_argument("overrides", nargs="*", help="config overrides for every run, key.sub=value")
+    return p.parse_args(argv)
+
+
+def config_spec(config: str, variant: str) -> str:
+    """``FILE[:a,b]`` plus a row variant -> ``FILE:a,b,variant`` (a Windows-free split)."""
+    path, _, own = config.partition(":")
+    parts = [v for v in (*own.split(","), variant) if v]
+    return f"{path}:{','.join(parts)}" if parts else path
+
+
+def runner_command(task: str, entry: dict, out: Path) -> str:
+    """The command that (re)runs every row and seed of a plan entry."""
+    if out.is_relative_to(REPO):
+        out = out.relative_to(REPO)
+    parts = ["python", "benchmarks/ablation_table.py", "--task", task]
+    parts += ["--rows", ",".join(entry["rows"]), "--seeds", ",".join(map(str, entry["seeds"]))]
+    parts += ["--out", str(out), "--config", entry["config"], *entry["overrides"]]
+    return shlex.join(parts)
+
+
+def update_plan(out: Path, task: str, entry: dict) -> dict:
+    """Adds the requested rows/seeds to ``OUT/plan.json``; refuses a different set-up."""
+    path = out / PLAN
+    plan = json.loads(path.read_text()) if path.exists() else {}
+    old = plan.get(task)
+    if old is not None:
+        for key in ("config", "overrides"):
+            if old[key] != entry[key]:
+                print(
+                    f"error: {path} holds {task} runs with {key}={old[key]!r}, not "
+                    f"{entry[key]!r}; use another --out to run a different set-up",
+                    file=sys.stderr,
+                )
+                raise SystemExit(2)
+        entry = dict(
+            old,
+            rows=old["rows"] + [r for r in entry["rows"] if r not in old["rows"]],
+            seeds=sorted(set(old["seeds"]) | set(entry["seeds"])),
+        )
+    entry["command"] = runner_command(task, entry, out)
+    plan[task] = entry
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path) as f:
+        json.dump(plan, f, indent=2)
+    return plan
+
+
+def run_one(task: str, spec: str, workdir: Path, seed: int, overrides: list[str]) -> int:
+    """Trains (or resumes) one workdir in a child ``train.py``; returns its exit status.
+
+    Exit 0 with a final ``metrics.json`` -> ``ablation_run.json`` (final step, wall time of
+    all attempts, CPU); anything else -> ``ablation_failed.json`` (the next call resumes).
+    """
+    cmd = [sys.executable, "train.py", "--task", task, "--config", spec, "--workdir", str(workdir)]
+    cmd += [f"seed={seed}", *overrides]
+    workdir.mkdir(parents=True, exist_ok=True)
+    (workdir / FAILED_MARKER).unlink(missing_ok=True)
+    print(f"[ablation] {shlex.join(cmd)}", flush=True)
+    t0 = time.perf_counter()
+    code = None
+    try:
+        with open(workdir / "train.log", "a") as log:
+            log.write(f"\n[ablation] {time.strftime('%Y-%m-%d %H:%M:%S')} {shlex.join(cmd)}\n")
+            child = subprocess.Popen(
+                cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+            )
+            for line in child.stdout:
+                sys.stdout.write(line)
+                log.write(line)
+            code = child.wait()
+    finally:  # also on Ctrl-C (the child got the SIGINT too): keep the attempt's wall time
+        wall = time.perf_counter() - t0 + _previous_wall(workdir)
+        with atomic_write(workdir / "wall.json") as f:
+            json.dump({"wall_s": round(wall, 1)}, f)
+    status = {"returncode": code, "wall_s": round(wall, 1), "command": cmd}
+    steps = [int(p.parent.name[5:]) for p in workdir.glob("results/step_*/metrics.json")]
+    if code == 0 and steps:
+        status |= {
+            "final_step": max(steps),
+            "machine": f"{cpu_model()}, {os.cpu_count()} cores",
+            "finished": time.strftime("%Y-%m-%d %H:%M:%S"),
+        }
+        with atomic_write(workdir / DONE_MARKER) as f:
+            json.dump(status, f, indent=2)
+        return 0
+    if code == 0:
+        code = status["returncode"] = 1
+        status["error"] = "train.py exited 0 but wrote no results/step_*/metrics.json"
+    status["last_step"] = last_train_step(workdir)
+    with atomic_write(workdir / FAILED_MARKER) as f:
+        json.dump(status, f, indent=2)
+    return code
+
+
+def _previous_wall(workdir: Path) -> float:
+    """Wall time of the earlier attempts on ``workdir`` (``wall.json``)."""
+    path = workdir / "wall.json"
+    return json.loads(path.read_text())["wall_s"] if path.exists() else 0.0
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    task = TASKS[args.task]
+    rows = args.rows.split(",") if args.rows else list(task.rows)
+    unknown = [r for r in rows if r not in task.variants]
+    if unknown:
+        print(
+            f"error: unknown {args.task} rows {unknown}; known: {list(task.rows)}", file=sys.stderr
+        )
+        return 2
+    try:
+        seeds = [int(s) for s in args.seeds.split(",")]
+    except ValueError:
+        print(
+            f"error: --seeds must be comma-separated integers, got {args.seeds!r}", file=sys.stderr
+        )
+        return 2
+    out = Path(args.out).resolve()
+    config = args.config or DEFAULT_CONFIGS[args.task]
+    failed = []
+    if not args.report_only:
+        entry = {"config": config, "overrides": list(args.overrides), "rows": rows}
+        update_plan(out, args.task, entry | {"seeds": seeds})
+        # Seed-major: every row gets its first seed before any row gets a second one.
+        todo = [(seed, row) for seed in seeds for row in rows]
+        for seed, row in todo:
+            workdir = run_dir(out, args.task, row, seed)
+            if (workdir / DONE_MARKER).exists():
+                print(f"[ablation] {args.task} {row} seed {seed}: finished, skipped")
+                continue
+            code = run_one(
+                args.task, config_spec(config, task.variants[row]), workdir, seed, args.overrides
+            )
+            if code != 0:
+                failed.append(f"{row} seed {seed} (exit {code})")
+                print(f"[ablation] {args.task} {row} seed {seed}: exit {code}", flush=True)
+                if code == 75:  # stopped on SIGTERM after a checkpoint: stop here, rerun resumes
+                    break
+    report = Path(args.report)
+    with atomic_write(report) as f:
+        f.write(render(out))
+    print(f"[ablation] wrote {report}")
+    if failed:
+        print("[ablation] not finished: " + ", ".join(failed), file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
