@@ -1,4 +1,4 @@
-"""Deployment runtimes end to end on the tiny trained detector workdir (13 real KITTI frames).
+"""Deployment runtimes end to end on the tiny trained detector workdir (the real KITTI frames of the ``labeled`` split).
 
 ``evaluate.py --runtime onnxruntime`` must write the result files of the jitted path (the
 trainer's final evaluation of the same checkpoint, which ``test_evaluate_model`` shows is
@@ -45,8 +45,8 @@ def flatten(tree, prefix: str = "") -> dict:
 def assert_same_results(mine: Path, reference: Path) -> None:
     ref = {p.name: p.read_text().split("\n") for p in sorted(reference.glob("*.txt"))}
     got = {p.name: p.read_text().split("\n") for p in sorted(mine.glob("*.txt"))}
-    assert got.keys() == ref.keys() and len(ref) == 13
-    assert sum(len(lines) for lines in ref.values()) > 2 * 13
+    assert got.keys() == ref.keys() and len(ref) >= 4
+    assert sum(len(lines) for lines in ref.values()) > 2 * len(ref)
     for name, lines in ref.items():
         assert len(got[name]) == len(lines), name
         for a, b in zip(got[name], lines, strict=True):
@@ -169,15 +169,15 @@ def test_bf16_without_native_support_is_one_line(monkeypatch):
 
 
 def test_predict_with_openvino_gives_the_jax_results(onnx_run, kitti_object_root, tmp_path, capsys):
-    """``python -m gac_jax.predict --runtime openvino`` (float32, batch 2: the last batch is
-    padded) on the 13 training images, reusing the run's export: the trainer's results."""
+    """``python -m gac_jax.predict --runtime openvino`` (float32, batch 3: the last batch is
+    padded) on the training images, reusing the run's export: the trainer's results."""
     pytest.importorskip("openvino", reason="deploy extra (openvino) not installed")
     from gac_jax import predict
 
     wd, out = onnx_run[0], tmp_path / "out"
     images = kitti_object_root / "training" / "image_2"
     argv = [
-        *("--workdir", wd, images, "--out", out, "--batch-size", 2, "--no-images"),
+        *("--workdir", wd, images, "--out", out, "--batch-size", 3, "--no-images"),
         *("--runtime", "openvino", "--precision", "f32"),
     ]
     code = predict.main([str(a) for a in argv])

@@ -73,11 +73,11 @@ def test_boxes_land_on_labelled_objects(frames, tmp_path):
         assert pic.shape == image.shape and pic.dtype == np.uint8
         viz.save_image(tmp_path / f"{sample['frame_id']}.png", pic)
         np.testing.assert_array_equal(read_image(tmp_path / f"{sample['frame_id']}.png"), pic)
-    assert checked_cars >= 25
+    assert checked_cars >= 12  # 13 untruncated cars in the vendored frames
 
 
 def test_predictions_over_ground_truth_with_labels(frames, tmp_path):
-    sample = frames[8]  # 000008: six cars, two of them truncated at the image border
+    sample = next(f for f in frames if f["frame_id"] == "000036")  # 7 cars, 2 truncated
     gt = sample["objects"]
     pred = gt.replace(score=np.linspace(0.5, 0.99, len(gt)), rotation_y=gt.rotation_y + 0.2)
     image, P2 = sample["image"], sample["P2"]
@@ -96,7 +96,7 @@ def test_predictions_over_ground_truth_with_labels(frames, tmp_path):
     # Both colours show: pixels within 40 levels of pure GT green / the Car orange.
     close = lambda c: np.all(np.abs(labelled.astype(int) - c) <= 40, axis=2)  # noqa: E731
     gt_pixels, pred_pixels = close(viz.GT_COLOR).sum(), close(viz.class_color("Car")).sum()
-    print(f"\n000008: {gt_pixels} GT-green and {pred_pixels} Car-orange pixels")
+    print(f"\n000036: {gt_pixels} GT-green and {pred_pixels} Car-orange pixels")
     assert gt_pixels > 500 and pred_pixels > 500
     viz.save_image(tmp_path / "pred_gt.png", viz.image_grid([labelled, plain], ["labels", "none"]))
 
