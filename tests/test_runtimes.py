@@ -1,4 +1,4 @@
-"""Deployment runtimes end to end on the tiny trained detector workdir (the real KITTI frames of the ``labeled`` split).
+"""Deployment runtimes end to end on the tiny trained detector workdir (real KITTI frames).
 
 ``evaluate.py --runtime onnxruntime`` must write the result files of the jitted path (the
 trainer's final evaluation of the same checkpoint, which ``test_evaluate_model`` shows is
