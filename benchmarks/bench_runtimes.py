@@ -11,8 +11,10 @@ exported (:mod:`gac_jax.export`) and run as
 with the calls interleaved (every round runs each path once, so a shared machine's load hits
 them alike). Detector: the *full path* of one real KITTI frame, image file -> KITTI objects
 (read + test transform, network, the jitted decoding/filter/top-k, NMS + hill-climbing), and
-the network call alone; depth net: the network call. Weights are random (timing only; the
-score threshold is 0 so all ``top_k`` candidates go through NMS and hill-climbing). Reported:
+the network call alone; depth net: the network call. Weights are random (timing only; score
+threshold 0 and ``top_k`` 100, so 100 candidates go through NMS and hill-climbing: a crowded
+frame; random weights would otherwise send a varying number, up to the configs' cap of 4096,
+through hill-climbing, which dominates and differs between runtimes). Reported:
 medians of wall and process-CPU ms, and the wall ratio to ``jax f32``; plus the CPU model and
 its AMX / AVX512_BF16 flags, and the 1-minute load average.
 
@@ -97,6 +99,7 @@ def paths_for(task, name, args, tmp: Path):
                 "data.train_split=labeled",
                 "anchors.prior_min_count=1",
                 "eval.score_threshold=0.0",
+                "eval.top_k=100",
             ],
         )
         layout = det_builders.anchor_layout(config)
