@@ -177,3 +177,13 @@ def test_deformable_decoder_is_refused():
     variables = random_variables(model, config, depth_builders.init_variables)
     with pytest.raises(ExportError, match="deformable.*cannot be exported"):
         depth_graph(model, variables, (config.data.height, config.data.eval_width), 17)
+
+
+def test_deformable_detector_head_is_refused():
+    """Table 3's deformable regression block has no ONNX form here: one clear refusal."""
+    config = load_config(str(REPO / "configs" / "detect3d_default.py:tiny,deformable"))
+    layout = det_builders.anchor_layout(config)
+    model = det_builders.build_model(config, layout.anchors_per_cell)
+    variables = random_variables(model, config, det_builders.init_variables)
+    with pytest.raises(ExportError, match="'deformable'.*cannot be exported.*--runtime jax"):
+        detector_graph(model, variables, (config.data.height, config.data.width), 17)

@@ -251,7 +251,10 @@ def detector_graph(
         disp = g.op("Expand", [disp, g.const([1, 1, Hf, Wf], "sh", np.int64)])
         r = g.conv(g.op("Concat", [disp, x], axis=1), w.conv("head", "disparity_conv"), relu=True)
     else:
-        raise ExportError(f"regression_block {block!r} is not exportable")
+        raise ExportError(
+            f"regression_block={block!r} (e.g. the Table 3 'deformable' row) cannot be exported: "
+            "only the gac, conv and disparity_conv blocks are; run this model with --runtime jax"
+        )
     for i in (1, 2):
         r = g.conv(r, w.conv("head", f"reg_conv{i}"), w.bn("head", f"reg_bn{i}"), relu=True)
     r = g.conv(r, w.conv("head", "reg_out"))
