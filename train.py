@@ -74,7 +74,7 @@ def main(argv=None) -> int:
     from gac_jax.cpu_backend import apply_default_xla_flags
 
     apply_default_xla_flags()  # before JAX starts its backend
-    from gac_jax import multiprocess
+    from gac_jax import multiprocess, stopping
 
     try:
         multi = multiprocess.initialize_distributed(
@@ -88,7 +88,7 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    multiprocess.install_stop_handlers()
+    stopping.install_stop_handlers()
     try:
         code = _run(args)
     except multiprocess.PeerLostError as e:

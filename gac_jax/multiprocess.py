@@ -32,16 +32,18 @@ import contextlib
 import dataclasses
 import itertools
 import os
-import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import numpy as np
+
+if TYPE_CHECKING:
+    from gac_jax.step_watchdog import ProgressWatchdog
 
 EXIT_PEER_LOST = 3  # another process died or hung; restart all processes to resume
 EXIT_PREEMPTED = 75  # stopped on SIGTERM/SIGINT after a checkpoint (EX_TEMPFAIL: run again)
@@ -276,6 +278,11 @@ def exit_once(message: str, code: int) -> None:
     os._exit(code)
 
 
+def _say(text: str) -> None:
+    with contextlib.suppress(OSError):
+        os.write(2, (text + "\n").encode())
+
+
 def _where_safe() -> str:
     try:
         return _where()
@@ -403,100 +410,6 @@ def check_shared_directory(directory: str | os.PathLike) -> None:
 
 # ----------------------------------------------------------------------------- stopping
 
-_stop = {"requested": False, "installed": False}
-
-
-def _multi_process_started() -> bool:
-    """Whether ``jax.distributed`` runs (without starting a backend, unlike process_count)."""
-    from jax._src import distributed
-
-    return distributed.global_state.client is not None
-
-
-def install_stop_handlers() -> None:
-    """SIGTERM and SIGINT stop the run after the current step, with a checkpoint.
-
-    For entry points (``train.py``), from the main thread, after
-    :func:`initialize_distributed`. The trainers poll :func:`preemption_requested`
-    after every step; when it says so they save a checkpoint and raise
-    :class:`PreemptedError` (exit status :data:`EXIT_PREEMPTED`).
-
-    * Single process: either signal sets the flag that :func:`preemption_requested` reads.
-    * Multi-process: SIGTERM belongs to JAX's preemption service (installed by
-      ``jax.distributed.initialize``), which makes all processes agree on the step;
-      a first SIGINT is passed on to it as a SIGTERM to this process.
-    * A second SIGINT exits at once (status :data:`EXIT_INTERRUPTED`), without a
-      checkpoint, even while the main thread waits inside XLA: the signal numbers
-      reach a small thread through ``signal.set_wakeup_fd``, not the main thread's
-      Python handlers (which run only between bytecodes).
-    """
-    if _stop["installed"]:
-        return
-    multi = _multi_process_started()
-    read_fd, write_fd = os.pipe()
-    os.set_blocking(write_fd, False)
-    signals = (signal.SIGINT,) if multi else (signal.SIGINT, signal.SIGTERM)
-    for signum in signals:
-        # A Python-level handler makes CPython's C handler write to the wakeup fd.
-        signal.signal(signum, lambda *_: None)
-    signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
-    threading.Thread(
-        target=_watch_stop_signals, args=(read_fd, multi), name="gac-signals", daemon=True
-    ).start()
-    _stop["installed"] = True
-
-
-def _say(text: str) -> None:
-    with contextlib.suppress(OSError):
-        os.write(2, (text + "\n").encode())
-
-
-def _watch_stop_signals(read_fd: int, multi: bool) -> None:
-    interrupts = 0
-    while True:
-        data = os.read(read_fd, 64)
-        if not data:
-            return
-        for signum in data:
-            if signum == signal.SIGINT:
-                interrupts += 1
-                if interrupts > 1:
-                    _say("second interrupt: stopping now, without a checkpoint")
-                    os._exit(EXIT_INTERRUPTED)
-            elif signum != signal.SIGTERM:
-                continue
-            if _stop["requested"]:
-                continue
-            _stop["requested"] = True
-            name = signal.Signals(signum).name
-            _say(
-                f"{name} received: stopping after the current step with a checkpoint "
-                "(Ctrl-C again to stop at once, without one)"
-            )
-            if multi and signum == signal.SIGINT:
-                os.kill(os.getpid(), signal.SIGTERM)  # JAX's preemption notifier takes it on
-
-
-def preemption_requested(step: int) -> bool:
-    """True at the step where the run stops after a SIGTERM or SIGINT (see
-    :func:`install_stop_handlers`).
-
-    Must be called at every step by every process. Multi-process: all processes
-    agree on the step (JAX's preemption sync point). Single process: the first
-    call after the signal arrived.
-    """
-    if jax.process_count() == 1:
-        return _stop["requested"]
-    from jax._src import distributed
-    from jax.experimental import multihost_utils
-
-    if distributed.global_state.preemption_sync_manager is None:
-        return False
-    return multihost_utils.reached_preemption_sync_point(int(step))
-
-
-# ----------------------------------------------------------------------------- failure detection
-
 _PEER_FAILURE_MARKERS = (
     "gloo",
     "nccl",
@@ -539,104 +452,3 @@ def raise_if_peer_failure(error: BaseException, hint: str = "") -> None:
 def _first_line(error: BaseException) -> str:
     text = str(error).strip().splitlines()
     return text[0][:300] if text else type(error).__name__
-
-
-def _default_on_timeout(message: str) -> None:
-    print(f"error: {message}", file=sys.stderr, flush=True)
-    sys.stdout.flush()
-    os._exit(EXIT_PEER_LOST)  # the main thread is stuck in a collective; no clean way out
-
-
-class ProgressWatchdog:
-    """Exits the process when training makes no progress for ``timeout_s`` seconds.
-
-    A peer that hangs while alive (stuck I/O, a deadlock) still sends
-    heartbeats, and the survivors would wait in the step's collective forever.
-    The trainer calls :meth:`step` after dispatching every step; it waits for
-    the *previous* step to finish (one step stays in flight) and restarts the
-    clock, so the clock measures real progress. The clock starts at
-    construction (the first step includes compilation). Exiting closes this
-    process's connections, which stops the peers' collectives in turn.
-
-    Active only in multi-process runs (``enabled=None``); elsewhere every call is
-    free. ``on_timeout(message)`` defaults to printing and ``os._exit(3)``.
-    """
-
-    def __init__(
-        self,
-        timeout_s: float | None = None,
-        hint: str = "",
-        enabled: bool | None = None,
-        on_timeout: Callable[[str], None] | None = None,
-        poll_s: float = 0.5,
-    ):
-        self.timeout_s = settings.step_timeout if timeout_s is None else float(timeout_s)
-        self.hint = hint
-        self.enabled = jax.process_count() > 1 if enabled is None else enabled
-        self._on_timeout = on_timeout or _default_on_timeout
-        self._pending = None
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._deadline: float | None = None
-        self._phase = "the first training step (includes compilation)"
-        self._thread = None
-        if self.enabled:
-            self._arm(self._phase)
-            self._thread = threading.Thread(
-                target=self._watch, args=(poll_s,), name="gac-watchdog", daemon=True
-            )
-            self._thread.start()
-
-    def _arm(self, phase: str) -> None:
-        with self._lock:
-            self._phase = phase
-            self._deadline = time.monotonic() + self.timeout_s
-
-    def _watch(self, poll_s: float) -> None:
-        while not self._stop.wait(poll_s):
-            with self._lock:
-                expired = self._deadline is not None and time.monotonic() > self._deadline
-                phase = self._phase
-            if expired:
-                self._stop.set()
-                self._on_timeout(
-                    f"{_where()}: no progress for {self.timeout_s:g} s while waiting for "
-                    f"{phase}; another process probably hung or died. Stopping instead of "
-                    f"waiting forever (timeout: --step-timeout / GAC_STEP_TIMEOUT). {self.hint}"
-                )
-
-    def step(self, step: int, outputs: Any) -> None:
-        """After dispatching step ``step`` (outputs: any of its results)."""
-        if not self.enabled:
-            return
-        if self._pending is not None:
-            jax.block_until_ready(self._pending)
-        self._pending = outputs
-        self._arm(f"training step {step} to finish")
-
-    @contextlib.contextmanager
-    def paused(self) -> Iterator[None]:
-        """No deadline inside (work with its own timeout); the clock restarts after."""
-        if not self.enabled:
-            yield
-            return
-        if self._pending is not None:
-            jax.block_until_ready(self._pending)
-            self._pending = None
-        with self._lock:
-            self._deadline = None
-        try:
-            yield
-        finally:
-            self._arm("the next training step")
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
-
-    def __enter__(self) -> ProgressWatchdog:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

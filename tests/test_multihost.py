@@ -333,14 +333,14 @@ def test_a_peer_lost_while_a_checkpoint_is_written_is_a_clean_stop(
 HANGING_WORKER = f"""
 import os, sys, time
 sys.path.insert(0, {str(REPO)!r})
-from gac_jax import multiprocess, parallel
+from gac_jax import multiprocess, parallel, step_watchdog
 process_id, port = int(sys.argv[1]), sys.argv[2]
 multiprocess.initialize_distributed(f"localhost:{{port}}", 2, process_id, step_timeout=3)
 import jax, numpy as np
 mesh = parallel.make_mesh()
 total = jax.jit(lambda x: x.sum(), out_shardings=parallel.replicated(mesh))
 try:  # the trainer's loop, in miniature
-    with multiprocess.ProgressWatchdog(hint="(restart hint)") as watchdog:
+    with step_watchdog.ProgressWatchdog(hint="(restart hint)") as watchdog:
         for step in range(1, 1000):
             batch = parallel.to_global({{"x": np.full((1,), step, np.float32)}}, mesh)
             out = total(batch["x"])

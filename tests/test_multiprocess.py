@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gac_jax import multiprocess, parallel
+from gac_jax import multiprocess, parallel, step_watchdog, stopping
 
 
 @pytest.fixture(autouse=True)
@@ -70,7 +70,7 @@ def test_single_process_shard_and_coordination_are_trivial(tmp_path):
     multiprocess.check_shared_directory(tmp_path)
     assert multiprocess.run_on_main(lambda: 42, "z") == 42
     assert order == ["body"]
-    assert multiprocess.preemption_requested(3) is False
+    assert stopping.preemption_requested(3) is False
     assert multiprocess.is_peer_failure(ValueError("Gloo all-reduce failed")) is False
     multiprocess.raise_if_peer_failure(ValueError("Gloo all-reduce failed"))  # no-op here
 
@@ -96,7 +96,7 @@ class Recorder:
 
 def test_watchdog_fires_only_when_steps_stop():
     rec = Recorder()
-    with multiprocess.ProgressWatchdog(
+    with step_watchdog.ProgressWatchdog(
         timeout_s=0.4, hint="(hint)", enabled=True, on_timeout=rec, poll_s=0.02
     ) as dog:
         for step in range(1, 9):  # 0.8 s of steady progress, longer than the timeout
@@ -113,7 +113,7 @@ def test_watchdog_fires_only_when_steps_stop():
 
 def test_watchdog_pauses_and_restarts_its_clock():
     rec = Recorder()
-    with multiprocess.ProgressWatchdog(
+    with step_watchdog.ProgressWatchdog(
         timeout_s=0.3, enabled=True, on_timeout=rec, poll_s=0.02
     ) as dog:
         dog.step(1, jnp.zeros(()))
@@ -125,7 +125,7 @@ def test_watchdog_pauses_and_restarts_its_clock():
 
 
 def test_watchdog_is_off_in_a_single_process_run():
-    dog = multiprocess.ProgressWatchdog(timeout_s=0.01)
+    dog = step_watchdog.ProgressWatchdog(timeout_s=0.01)
     assert not dog.enabled and dog._thread is None  # noqa: SLF001
     dog.step(1, jnp.zeros(()))
     with dog.paused():

@@ -16,7 +16,7 @@ from pathlib import Path
 import jax
 import ml_collections
 
-from gac_jax import multiprocess, parallel
+from gac_jax import multiprocess, parallel, step_watchdog, stopping
 from gac_jax.anchor_filter import ground_mask_from_constants
 from gac_jax.anchor_priors import (
     make_detection_constants,
@@ -187,7 +187,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     # Loop. In a multi-process run the watchdog stops a process whose peers hang.
     hint = f"Restart all processes to resume from the last checkpoint in {checkpoints.directory}."
     multiprocess.settings.peer_lost_hint = hint  # also for losses seen outside a step
-    watchdog = multiprocess.ProgressWatchdog(hint=hint)
+    watchdog = step_watchdog.ProgressWatchdog(hint=hint)
     compile_t0 = time.perf_counter()
     step = start_step
     try:
@@ -208,7 +208,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
                     {"cls": float(m["cls_loss"]), "reg": float(m["reg_loss"])},
                 )
                 writer.write(step, lr=lr, **{k: float(v) for k, v in m.items()}, **stats)
-            if multiprocess.preemption_requested(step):  # SIGTERM/SIGINT: all stop here
+            if stopping.preemption_requested(step):  # SIGTERM/SIGINT: all stop here
                 save(step)
                 raise multiprocess.PreemptedError(step)
             if step % config.train.checkpoint_every == 0 and step < total_steps:
