@@ -68,18 +68,7 @@ def _jax_detector(case: dict, plain: bool) -> dict:
         fwd = jax.jit(forward).lower(p, bs, batch).compile()
         grad = jax.jit(jax.value_and_grad(loss_fn)).lower(p, bs, batch).compile()
         step = step.lower(state, batch).compile()
-    holder = {"state": jax.tree.map(lambda x: x.copy(), state)}  # the step donates it
-
-    def run_step():
-        holder["state"], metrics = step(holder["state"], batch)
-        return metrics["loss"]
-
-    return {
-        "forward": lambda: fwd(p, bs, batch),
-        "fwd+bwd": lambda: grad(p, bs, batch),
-        "step": run_step,
-        "params": int(sum(x.size for x in jax.tree.leaves(p))),
-    }
+    return _timed_calls(fwd, grad, step, state, p, bs, batch)
 
 
 def _jax_depth(plain: bool, batch_size: int = 8) -> dict:
@@ -127,17 +116,8 @@ def _jax_depth(plain: bool, batch_size: int = 8) -> dict:
         fwd = jax.jit(forward).lower(p, bs, batch).compile()
         grad = jax.jit(jax.value_and_grad(loss_fn)).lower(p, bs, batch).compile()
         step = step.lower(state, batch).compile()
-    holder = {"state": jax.tree.map(lambda x: x.copy(), state)}
-
-    def run_step():
-        holder["state"], metrics = step(holder["state"], batch)
-        return metrics["loss"]
-
     return {
-        "forward": lambda: fwd(p, bs, batch),
-        "fwd+bwd": lambda: grad(p, bs, batch),
-        "step": run_step,
-        "params": int(sum(x.size for x in jax.tree.leaves(p))),
+        **_timed_calls(fwd, grad, step, state, p, bs, batch),
         "input": f"{batch_size}x{config.data.height}x{config.data.width}",
     }
 
@@ -277,3 +257,19 @@ def compare(networks: list[str], rounds: int, with_torch: bool) -> dict:
     for note in notes:
         print(note)
     return {"machine": machine, "rounds": rounds, "rows": rows, "notes": notes}
+
+
+def _timed_calls(fwd, grad, step, state, p, bs, batch) -> dict:
+    """The three timed calls of one JAX network (the step donates its state: a copy is kept)."""
+    holder = {"state": jax.tree.map(lambda x: x.copy(), state)}
+
+    def run_step():
+        holder["state"], metrics = step(holder["state"], batch)
+        return metrics["loss"]
+
+    return {
+        "forward": lambda: fwd(p, bs, batch),
+        "fwd+bwd": lambda: grad(p, bs, batch),
+        "step": run_step,
+        "params": int(sum(x.size for x in jax.tree.leaves(p))),
+    }
