@@ -1,8 +1,9 @@
 """The shipped (CPU-fast) formulation gives the plain formulation's outputs and gradients.
 
 Only the ResNet trunk has a CPU-specific formulation (:func:`plain_formulation` switches it
-back to plain Flax ops), so a tiny trunk in train mode (batch statistics) covers every
-detector and depth-network train step.
+back to plain Flax ops: max-pool, stem conv and train-mode BatchNorm + ReLU), so a tiny trunk
+in train mode (batch statistics, compared too) covers every detector and depth-network train
+step (the depth U-Net's decoder BatchNorms are Flax's in both).
 """
 
 from __future__ import annotations
