@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from flax import linen as nn
 
-from gac_jax.models.batch_norm import BatchNorm, batch_norm_train
+from gac_jax.models.batch_norm import BatchNorm, _channel_sums, batch_norm_train
 
 EPS = 1e-5
 
@@ -114,3 +114,15 @@ def test_batch_norm_train_traces_once():
     grad(x, scale, bias)
     grad(x * 2.0, scale + 1.0, bias)
     assert len(traces) == 1
+
+
+@pytest.mark.parametrize("shape", [(8, 20, 90, 4), (1, 37, 41, 3), (2, 1, 1, 5), (1, 7, 1, 2)])
+def test_channel_sums_match_float64(shape):
+    """Divisible, prime-ish (zero-padded blocks) and tiny row counts: float64 sums."""
+    rng = np.random.default_rng(len(shape) + shape[1])
+    a = 3.0 + rng.standard_normal(shape)
+    b = rng.standard_normal(shape)
+    sa, sb = jax.jit(_channel_sums)(jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32))
+    axes = tuple(range(len(shape) - 1))
+    np.testing.assert_allclose(sa, a.sum(axes), rtol=1e-6, atol=1e-5)
+    np.testing.assert_allclose(sb, b.sum(axes), rtol=1e-5, atol=1e-4)

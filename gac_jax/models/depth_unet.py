@@ -48,7 +48,7 @@ from gac_jax.models.ground_aware_conv import (
     GroundAwareConv,
 )
 from gac_jax.models.initializers import torch_conv_bias_init, torch_conv_kernel_init
-from gac_jax.models.resnet import ResNet, layer_output_size
+from gac_jax.models.resnet import ResNet, batch_norm_layer, layer_output_size
 
 INTRINSICS_MODES = ("correct", "reference")
 DECODER_CONVS = ("plain", "deformable")
@@ -166,17 +166,6 @@ def _conv(features: int, kernel: int, fan_in: int, dtype: Any, pdt: Any, name: s
     )
 
 
-def _batch_norm(train: bool, dtype: Any, pdt: Any, name: str) -> nn.BatchNorm:
-    return nn.BatchNorm(
-        use_running_average=not train,
-        momentum=0.9,
-        epsilon=1e-5,
-        dtype=dtype,
-        param_dtype=pdt,
-        name=name,
-    )
-
-
 class UpStage(nn.Module):
     """One decoder stage (reference ``Up`` + ``DoubleConv``). See the module docstring.
 
@@ -225,12 +214,12 @@ class UpStage(nn.Module):
             )(x, P_given)
             x = gac_out["features"]
         x = _conv(channels, 5, channels, dt, pdt, "conv1")(x)
-        x = nn.relu(_batch_norm(train, dt, pdt, "bn1")(x))
+        x = batch_norm_layer(train, dt, pdt, "bn1", relu=True)(x)
         if self.decoder_conv == "deformable":
             x = ModulatedDeformConv(self.features, 3, dtype=dt, param_dtype=pdt, name="conv2")(x)
         else:
             x = _conv(self.features, 3, channels, dt, pdt, "conv2")(x)
-        x = nn.relu(_batch_norm(train, dt, pdt, "bn2")(x))
+        x = batch_norm_layer(train, dt, pdt, "bn2", relu=True)(x)
         return x, gac_out
 
 

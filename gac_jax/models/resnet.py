@@ -100,11 +100,13 @@ def layer_channels(depth: int, layer: int, width: int = 64) -> int:
     return width * 2 ** (layer - 1) * expansion
 
 
-def _batch_norm(
+def batch_norm_layer(
     train: bool, dtype: Any, param_dtype: Any, name: str, relu: bool = False
 ) -> Callable[[jax.Array], jax.Array]:
-    """BatchNorm (then ReLU when ``relu``): Flax's, or under the default formulation the
-    closed-form-backward one of :mod:`gac_jax.models.batch_norm` (same variables)."""
+    """BatchNorm over the last axis (then ReLU when ``relu``), momentum 0.9 and eps 1e-5 like
+    PyTorch's defaults: under the default formulation the closed-form-backward one of
+    :mod:`gac_jax.models.batch_norm`, under :func:`plain_formulation` Flax's (same variables).
+    Used by the ResNet, the detection head and the depth decoder."""
     kwargs = dict(
         use_running_average=not train,
         momentum=0.9,
@@ -155,13 +157,13 @@ class BasicBlock(nn.Module):
     def __call__(self, x: jax.Array, train: bool) -> jax.Array:
         dt, pdt = self.dtype, self.param_dtype
         y = _conv(self.features, 3, self.stride, dt, pdt, "conv1")(x)
-        y = _batch_norm(train, dt, pdt, "bn1", relu=True)(y)
+        y = batch_norm_layer(train, dt, pdt, "bn1", relu=True)(y)
         y = _conv(self.features, 3, 1, dt, pdt, "conv2")(y)
-        y = _batch_norm(train, dt, pdt, "bn2")(y)
+        y = batch_norm_layer(train, dt, pdt, "bn2")(y)
         shortcut = x
         if self.stride != 1 or x.shape[-1] != self.features:
             shortcut = _conv(self.features, 1, self.stride, dt, pdt, "downsample_0")(x)
-            shortcut = _batch_norm(train, dt, pdt, "downsample_1")(shortcut)
+            shortcut = batch_norm_layer(train, dt, pdt, "downsample_1")(shortcut)
         return nn.relu(y + shortcut)
 
 
@@ -178,15 +180,15 @@ class Bottleneck(nn.Module):
         dt, pdt = self.dtype, self.param_dtype
         out_features = self.features * BOTTLENECK_EXPANSION
         y = _conv(self.features, 1, 1, dt, pdt, "conv1")(x)
-        y = _batch_norm(train, dt, pdt, "bn1", relu=True)(y)
+        y = batch_norm_layer(train, dt, pdt, "bn1", relu=True)(y)
         y = _conv(self.features, 3, self.stride, dt, pdt, "conv2")(y)
-        y = _batch_norm(train, dt, pdt, "bn2", relu=True)(y)
+        y = batch_norm_layer(train, dt, pdt, "bn2", relu=True)(y)
         y = _conv(out_features, 1, 1, dt, pdt, "conv3")(y)
-        y = _batch_norm(train, dt, pdt, "bn3")(y)
+        y = batch_norm_layer(train, dt, pdt, "bn3")(y)
         shortcut = x
         if self.stride != 1 or x.shape[-1] != out_features:
             shortcut = _conv(out_features, 1, self.stride, dt, pdt, "downsample_0")(x)
-            shortcut = _batch_norm(train, dt, pdt, "downsample_1")(shortcut)
+            shortcut = batch_norm_layer(train, dt, pdt, "downsample_1")(shortcut)
         return nn.relu(y + shortcut)
 
 
@@ -237,7 +239,7 @@ class ResNet(nn.Module):
         plain = _PLAIN_FORMULATION.get()
         stem_conv = None if plain else stride2_conv.conv_general_dilated
         x = _conv(self.width, 7, 2, dt, pdt, "conv1", stem_conv)(images)
-        x = _batch_norm(train, dt, pdt, "bn1", relu=True)(x)
+        x = batch_norm_layer(train, dt, pdt, "bn1", relu=True)(x)
         pool = nn.max_pool if plain else max_pool
         x = pool(x, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
 
