@@ -31,7 +31,6 @@ import jax.numpy as jnp
 from flax import linen as nn
 from jax import lax
 
-
 _BLOCK = 32  # XLA:CPU rewrites reductions of more elements than this (tree reduction)
 
 

@@ -62,6 +62,11 @@ def plain_formulation() -> Iterator[None]:
         _PLAIN_FORMULATION.reset(token)
 
 
+def uses_plain_formulation() -> bool:
+    """True while tracing inside :func:`plain_formulation`."""
+    return _PLAIN_FORMULATION.get()
+
+
 # depth -> (block kind, blocks per stage)
 RESNET_SPECS: dict[int, tuple[str, tuple[int, int, int, int]]] = {
     18: ("basic", (2, 2, 2, 2)),
