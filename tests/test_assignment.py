@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gac_jax.anchors import AnchorLayout, box_iou_np, generate_anchors
-from gac_jax.assignment import assign_anchors, box_iou
+from gac_jax.assignment import assign_anchors, box_iou, first_argmax
 
 LAYOUT = AnchorLayout(image_size=(48, 96), base_size=16.0, scales=(1.0, 1.5, 2.0, 3.0))
 
@@ -123,3 +123,14 @@ def test_low_quality_matching_forces_each_gts_best_anchor():
     ground = np.array([[True, False, True]])
     masked = assign_anchors(anchors, gts, mask, cls, ground_mask=ground, match_low_quality=True)
     np.testing.assert_array_equal(masked.labels[0], [1, -1, 1])
+
+
+def test_first_argmax_equals_jnp_argmax_with_ties_and_padding():
+    rng = np.random.default_rng(3)
+    x = rng.integers(0, 4, (5, 200, 7)).astype(np.float32) / 4  # many ties, incl. whole rows
+    x[:, :10] = -1.0  # rows of padding (all equal)
+    x[0, 20, 3] = np.inf
+    x = jnp.asarray(x)
+    ours = jax.jit(lambda x: first_argmax(x, jnp.max(x, -1)))(x)
+    np.testing.assert_array_equal(ours, jnp.argmax(x, -1))
+    assert ours.dtype == jnp.int32

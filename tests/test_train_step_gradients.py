@@ -1,8 +1,10 @@
 """The shipped (CPU-fast) formulation gives the plain formulation's outputs and gradients.
 
-Only the ResNet trunk has a CPU-specific formulation (:func:`plain_formulation` switches it
-back to plain Flax ops), so a tiny trunk in train mode (batch statistics) covers every
-detector and depth-network train step.
+:func:`plain_formulation` switches the CPU-specific formulation back to plain Flax ops: the
+ResNet's max-pool and stem conv, and train-mode BatchNorm + ReLU (ResNet, detection head and
+depth decoder all build theirs with ``resnet.batch_norm_layer``). A tiny trunk in train mode
+(batch statistics, compared too) covers the first two and the BatchNorm; the BatchNorm itself
+is checked against float64 in ``test_batch_norm.py``.
 """
 
 from __future__ import annotations

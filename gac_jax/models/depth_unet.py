@@ -48,7 +48,12 @@ from gac_jax.models.ground_aware_conv import (
     GroundAwareConv,
 )
 from gac_jax.models.initializers import torch_conv_bias_init, torch_conv_kernel_init
-from gac_jax.models.resnet import ResNet, layer_output_size
+from gac_jax.models.resnet import (
+    ResNet,
+    batch_norm_layer,
+    layer_output_size,
+    uses_plain_formulation,
+)
 
 INTRINSICS_MODES = ("correct", "reference")
 DECODER_CONVS = ("plain", "deformable")
@@ -166,15 +171,44 @@ def _conv(features: int, kernel: int, fan_in: int, dtype: Any, pdt: Any, name: s
     )
 
 
-def _batch_norm(train: bool, dtype: Any, pdt: Any, name: str) -> nn.BatchNorm:
-    return nn.BatchNorm(
-        use_running_average=not train,
-        momentum=0.9,
-        epsilon=1e-5,
-        dtype=dtype,
-        param_dtype=pdt,
-        name=name,
-    )
+class ResizedConvHead(nn.Module):
+    """``conv3x3(C -> 1)`` (zero padding 1, with bias) of ``x`` bilinearly resized to ``size``
+    (``align_corners=True``): the full-resolution head ``out_scale_1``.
+
+    ``__call__(x (B,h,w,C)) -> (B,H,W,1)``, the same variables as ``nn.Conv`` (``kernel``
+    (3,3,C,1), ``bias`` (1,), same initialisers). Computed in the cheaper order: the 9 taps
+    first, as a 1x1 conv C->9 on the small map, then the resize of those 9 channels, then the
+    sum of the taps shifted into place (zero outside the image, like the conv's padding).
+    Exact up to float32 rounding, because the resize mixes pixels channel by channel and so
+    commutes with the per-pixel channel mixing. On XLA:CPU the plain order's gradient
+    gathers and transposes the resized C-channel map (the largest tensor of the step); under
+    :func:`gac_jax.models.resnet.plain_formulation` the plain order is used (tests compare).
+    """
+
+    size: tuple[int, int]
+    dtype: Any = jnp.float32
+    param_dtype: Any = jnp.float32
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        c = x.shape[-1]
+        kernel = self.param("kernel", torch_conv_kernel_init, (3, 3, c, 1), self.param_dtype)
+        bias = self.param("bias", torch_conv_bias_init(9 * c), (1,), self.param_dtype)
+        kernel, bias = kernel.astype(self.dtype), bias.astype(self.dtype)
+        x = x.astype(self.dtype)
+        if uses_plain_formulation():
+            full = resize_bilinear_align_corners(x, self.size)
+            dn = ("NHWC", "HWIO", "NHWC")
+            y = jax.lax.conv_general_dilated(full, kernel, (1, 1), ((1, 1), (1, 1)), None, None, dn)
+            return y + bias
+        taps = jnp.einsum("bhwc,kc->bhwk", x, kernel[..., 0].reshape(9, c))  # k = 3 * dy + dx
+        taps = resize_bilinear_align_corners(taps, self.size)
+        H, W = self.size
+        padded = jnp.pad(taps, ((0, 0), (1, 1), (1, 1), (0, 0)))
+        y = sum(
+            padded[:, dy : dy + H, dx : dx + W, 3 * dy + dx] for dy in range(3) for dx in range(3)
+        )
+        return y[..., None] + bias
 
 
 class UpStage(nn.Module):
@@ -225,12 +259,12 @@ class UpStage(nn.Module):
             )(x, P_given)
             x = gac_out["features"]
         x = _conv(channels, 5, channels, dt, pdt, "conv1")(x)
-        x = nn.relu(_batch_norm(train, dt, pdt, "bn1")(x))
+        x = batch_norm_layer(train, dt, pdt, "bn1", relu=True)(x)
         if self.decoder_conv == "deformable":
             x = ModulatedDeformConv(self.features, 3, dtype=dt, param_dtype=pdt, name="conv2")(x)
         else:
             x = _conv(self.features, 3, channels, dt, pdt, "conv2")(x)
-        x = nn.relu(_batch_norm(train, dt, pdt, "bn2")(x))
+        x = batch_norm_layer(train, dt, pdt, "bn2", relu=True)(x)
         return x, gac_out
 
 
@@ -324,12 +358,14 @@ class DepthUNet(nn.Module):
             if gac_out is not None:
                 offsets[name] = gac_out["offset_rows"]
 
-        full = resize_bilinear_align_corners(decoded["up2"], (H, W))
-        heads = {"scale_8": decoded["up1"], "scale_4": decoded["up2"], "scale_1": full}
+        heads = {"scale_8": decoded["up1"], "scale_4": decoded["up2"]}
         log_depth = {}
         for scale in OUTPUT_SCALES:
-            feat = heads[scale]
-            f = _conv(1, 3, feat.shape[-1], dt, pdt, f"out_{scale}")(feat)
+            if scale == "scale_1":  # the scale-4 features resized to the input size
+                head = ResizedConvHead((H, W), dt, pdt, name=f"out_{scale}")
+                f = head(decoded["up2"])
+            else:
+                f = _conv(1, 3, heads[scale].shape[-1], dt, pdt, f"out_{scale}")(heads[scale])
             log_depth[scale] = self.prior_mean + f[..., 0].astype(jnp.float32)
         out: dict[str, Any] = {
             "log_depth": log_depth,

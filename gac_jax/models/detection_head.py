@@ -47,6 +47,7 @@ from gac_jax.models.ground_aware_conv import (
     disparity_prior,
 )
 from gac_jax.models.initializers import torch_conv_bias_init, torch_conv_kernel_init
+from gac_jax.models.resnet import batch_norm_layer
 
 REGRESSION_COMPONENTS = (
     "dx",
@@ -117,16 +118,6 @@ class DetectionHead(nn.Module):
             name=name,
         )
 
-    def _batch_norm(self, train: bool, name: str) -> nn.BatchNorm:
-        return nn.BatchNorm(
-            use_running_average=not train,
-            momentum=0.9,
-            epsilon=1e-5,
-            dtype=self.dtype,
-            param_dtype=self.param_dtype,
-            name=name,
-        )
-
     @nn.compact
     def __call__(self, features: jax.Array, P2: jax.Array, train: bool) -> dict[str, jax.Array]:
         if self.regression_block not in REGRESSION_BLOCKS:
@@ -183,7 +174,7 @@ class DetectionHead(nn.Module):
             r = nn.relu(self._conv(C, C + 1, "disparity_conv")(r))
         for i, in_features in enumerate((C, self.reg_features), start=1):
             r = self._conv(self.reg_features, in_features, f"reg_conv{i}")(r)
-            r = nn.relu(self._batch_norm(train, f"reg_bn{i}")(r))
+            r = batch_norm_layer(train, self.dtype, self.param_dtype, f"reg_bn{i}", relu=True)(r)
         r = self._conv(A * NUM_REGRESSION, self.reg_features, "reg_out", zero=True)(r)
         outputs["reg"] = r.reshape(B, H * W * A, NUM_REGRESSION).astype(jnp.float32)
         return outputs

@@ -30,14 +30,14 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import linen as nn
 
-from gac_jax.models import stride2_conv
+from gac_jax.models import batch_norm, stride2_conv
 from gac_jax.models.initializers import torchvision_resnet_kernel_init
 from gac_jax.models.max_pool import max_pool
 
@@ -51,7 +51,8 @@ def plain_formulation() -> Iterator[None]:
     The default formulation computes the same values and gradients but runs faster on
     XLA:CPU: the stem max-pool's gradient (:mod:`gac_jax.models.max_pool`) and the stem
     convolution as a space-to-depth stride-1 convolution (:mod:`gac_jax.models.stride2_conv`,
-    same sum in another order); benchmarks and tests use this switch to
+    same sum in another order) and train-mode BatchNorm (+ ReLU) with a closed-form backward
+    (:mod:`gac_jax.models.batch_norm`, same variables); benchmarks and tests use this switch to
     compare the two. It acts at trace time: jit (or ``lower``) inside the block.
     """
     token = _PLAIN_FORMULATION.set(True)
@@ -59,6 +60,11 @@ def plain_formulation() -> Iterator[None]:
         yield
     finally:
         _PLAIN_FORMULATION.reset(token)
+
+
+def uses_plain_formulation() -> bool:
+    """True while tracing inside :func:`plain_formulation`."""
+    return _PLAIN_FORMULATION.get()
 
 
 # depth -> (block kind, blocks per stage)
@@ -99,16 +105,25 @@ def layer_channels(depth: int, layer: int, width: int = 64) -> int:
     return width * 2 ** (layer - 1) * expansion
 
 
-def _batch_norm(train: bool, dtype: Any, param_dtype: Any, name: str, **kwargs) -> nn.BatchNorm:
-    return nn.BatchNorm(
+def batch_norm_layer(
+    train: bool, dtype: Any, param_dtype: Any, name: str, relu: bool = False
+) -> Callable[[jax.Array], jax.Array]:
+    """BatchNorm over the last axis (then ReLU when ``relu``), momentum 0.9 and eps 1e-5 like
+    PyTorch's defaults: under the default formulation the closed-form-backward one of
+    :mod:`gac_jax.models.batch_norm`, under :func:`plain_formulation` Flax's (same variables).
+    Used by the ResNet, the detection head and the depth decoder."""
+    kwargs = dict(
         use_running_average=not train,
         momentum=0.9,
         epsilon=1e-5,
         dtype=dtype,
         param_dtype=param_dtype,
         name=name,
-        **kwargs,
     )
+    if not _PLAIN_FORMULATION.get():
+        return batch_norm.BatchNorm(relu=relu, **kwargs)
+    bn = nn.BatchNorm(**kwargs)
+    return (lambda x: nn.relu(bn(x))) if relu else bn
 
 
 def _conv(
@@ -147,13 +162,13 @@ class BasicBlock(nn.Module):
     def __call__(self, x: jax.Array, train: bool) -> jax.Array:
         dt, pdt = self.dtype, self.param_dtype
         y = _conv(self.features, 3, self.stride, dt, pdt, "conv1")(x)
-        y = nn.relu(_batch_norm(train, dt, pdt, "bn1")(y))
+        y = batch_norm_layer(train, dt, pdt, "bn1", relu=True)(y)
         y = _conv(self.features, 3, 1, dt, pdt, "conv2")(y)
-        y = _batch_norm(train, dt, pdt, "bn2")(y)
+        y = batch_norm_layer(train, dt, pdt, "bn2")(y)
         shortcut = x
         if self.stride != 1 or x.shape[-1] != self.features:
             shortcut = _conv(self.features, 1, self.stride, dt, pdt, "downsample_0")(x)
-            shortcut = _batch_norm(train, dt, pdt, "downsample_1")(shortcut)
+            shortcut = batch_norm_layer(train, dt, pdt, "downsample_1")(shortcut)
         return nn.relu(y + shortcut)
 
 
@@ -170,15 +185,15 @@ class Bottleneck(nn.Module):
         dt, pdt = self.dtype, self.param_dtype
         out_features = self.features * BOTTLENECK_EXPANSION
         y = _conv(self.features, 1, 1, dt, pdt, "conv1")(x)
-        y = nn.relu(_batch_norm(train, dt, pdt, "bn1")(y))
+        y = batch_norm_layer(train, dt, pdt, "bn1", relu=True)(y)
         y = _conv(self.features, 3, self.stride, dt, pdt, "conv2")(y)
-        y = nn.relu(_batch_norm(train, dt, pdt, "bn2")(y))
+        y = batch_norm_layer(train, dt, pdt, "bn2", relu=True)(y)
         y = _conv(out_features, 1, 1, dt, pdt, "conv3")(y)
-        y = _batch_norm(train, dt, pdt, "bn3")(y)
+        y = batch_norm_layer(train, dt, pdt, "bn3")(y)
         shortcut = x
         if self.stride != 1 or x.shape[-1] != out_features:
             shortcut = _conv(out_features, 1, self.stride, dt, pdt, "downsample_0")(x)
-            shortcut = _batch_norm(train, dt, pdt, "downsample_1")(shortcut)
+            shortcut = batch_norm_layer(train, dt, pdt, "downsample_1")(shortcut)
         return nn.relu(y + shortcut)
 
 
@@ -229,7 +244,7 @@ class ResNet(nn.Module):
         plain = _PLAIN_FORMULATION.get()
         stem_conv = None if plain else stride2_conv.conv_general_dilated
         x = _conv(self.width, 7, 2, dt, pdt, "conv1", stem_conv)(images)
-        x = nn.relu(_batch_norm(train, dt, pdt, "bn1")(x))
+        x = batch_norm_layer(train, dt, pdt, "bn1", relu=True)(x)
         pool = nn.max_pool if plain else max_pool
         x = pool(x, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
 
