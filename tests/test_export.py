@@ -187,3 +187,48 @@ def test_deformable_detector_head_is_refused():
     variables = random_variables(model, config, det_builders.init_variables)
     with pytest.raises(ExportError, match="'deformable'.*cannot be exported.*--runtime jax"):
         detector_graph(model, variables, (config.data.height, config.data.width), 17)
+
+
+def _resize_align_corners_np(x: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """float64 bilinear resize, align_corners=True, of NCHW ``x`` (independent reference)."""
+    for axis, n_out in ((2, size[0]), (3, size[1])):
+        n_in = x.shape[axis]
+        src = np.arange(n_out) * ((n_in - 1) / max(n_out - 1, 1))
+        i0 = np.minimum(np.floor(src).astype(int), n_in - 1)
+        i1 = np.minimum(i0 + 1, n_in - 1)
+        shape = [1, 1, 1, 1]
+        shape[axis] = n_out
+        w1 = (src - i0).reshape(shape)
+        x = np.take(x, i0, axis=axis) * (1 - w1) + np.take(x, i1, axis=axis) * w1
+    return x
+
+
+@pytest.mark.parametrize("small,size", [((5, 7), (17, 26)), ((4, 4), (9, 13))])
+def test_resized_single_channel_conv_matches_resize_then_conv(small, size):
+    """The depth head's emitted form (9 taps on the small map, resize, shifted sum) equals a
+    zero-padded 3x3 conv C->1 of the resized map (float64 numpy), at batch 2."""
+    from gac_jax.export.graph import GraphBuilder
+    from gac_jax.export.networks import _resized_single_channel_conv
+
+    rng = np.random.default_rng(1)
+    C = 6
+    kernel = rng.normal(size=(3, 3, C, 1)).astype(np.float32)
+    bias = rng.normal(size=(1,)).astype(np.float32)
+    g = GraphBuilder("head")
+    x = g.add_input("x", ["batch", C, *small])
+    y = _resized_single_channel_conv(g, x, size, {"kernel": kernel, "bias": bias}, 2.3)
+    g.add_output(y, "y", ["batch", 1, *size])
+    xs = rng.normal(size=(2, C, *small)).astype(np.float32)
+    out = session(g.model(17)).run(None, {"x": xs})[0]
+
+    up = np.pad(
+        _resize_align_corners_np(xs.astype(np.float64), size), ((0, 0), (0, 0), (1, 1), (1, 1))
+    )
+    H, W = size
+    ref = np.full((2, 1, H, W), float(bias[0]) + 2.3)
+    for dy in range(3):
+        for dx in range(3):
+            patch = up[:, :, dy : dy + H, dx : dx + W]
+            ref[:, 0] += np.einsum("bchw,c->bhw", patch, kernel[dy, dx, :, 0].astype(np.float64))
+    assert out.shape == ref.shape
+    assert rel_error(out, ref) < 1e-5
