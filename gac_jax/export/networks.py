@@ -364,7 +364,7 @@ def depth_graph(
             else:
                 proj = _feature_rows(g, rows, (2.0 * stride, REFERENCE_GAC_STRIDE), keep_ty=False)
             x = _ground_aware_conv(g, w, (name, "gac"), x, want, proj, _geometry(model))
-        x = g.conv(x, w.conv(name, "conv1"), w.bn(name, "bn1"), relu=True)
+        x = g.conv(x, w.conv(name, "conv1"), w.bn(name, "bn1"), relu=True, winograd_size=want)
         x = g.conv(x, w.conv(name, "conv2"), w.bn(name, "bn2"), relu=True)
         have = want
     log_depth = _resized_single_channel_conv(
