@@ -272,7 +272,7 @@ def test_winograd_conv_matches_direct_conv(size):
 
 
 def test_winograd_rewrite_of_the_depth_net_matches_jit():
-    """Every marked decoder conv rewritten (min_channels 0), batch 2 and 1, vs the jitted model;
+    """Every marked decoder conv rewritten (no size limits), batch 2 and 1, vs the jitted model;
     the file's own graph keeps direct convs and the marks."""
     from gac_jax.export.winograd import apply_winograd, marked_convs
 
@@ -280,7 +280,7 @@ def test_winograd_rewrite_of_the_depth_net_matches_jit():
     proto = depth_graph(model, variables, size, 17)
     assert len(marked_convs(proto)) == 3  # conv1 of every decoder stage
     assert apply_winograd(proto, min_channels=10**6) == 0
-    assert apply_winograd(proto, min_channels=0) == 3
+    assert apply_winograd(proto, min_channels=0, min_pixels=0) == 3
     assert not any(
         n.op_type == "Conv" and n.output[0] in marked_convs(proto) for n in proto.graph.node
     )

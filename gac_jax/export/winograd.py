@@ -4,12 +4,13 @@ The exporter marks the 5x5 stride-1 convolutions it emits (the depth U-Net's dec
 ``conv1``: about half of that network's time) in the model's metadata
 (:data:`~gac_jax.export.graph.WINOGRAD_KEY`: ``{conv output: [Cin, H, W]}``); ``model.onnx``
 itself keeps the direct convolutions. For float32 runs, :func:`apply_winograd` replaces each
-marked conv with at least ``min_channels`` input channels by
+marked conv with at least ``min_channels`` input channels and ``min_pixels`` pixels by
 :meth:`~gac_jax.export.graph.GraphBuilder.conv5x5_winograd` (2.8x fewer multiplications in
 a batched MatMul; equal to the direct conv to float32 rounding). Not for bf16: rounding the
 transformed tiles to bfloat16 makes the result ~20x less accurate than a direct bf16 conv
-(and OpenVINO's bf16 direct conv is faster anyway), nor for narrow convs (128 channels at
-88x304: the transforms cost more than the MatMul saves, measured on a 2-core EPYC).
+(and OpenVINO's bf16 direct conv is faster anyway), nor for narrow convs or small maps
+(128 channels at 88x304, 384 channels at 6x22: the transforms cost as much as the MatMul
+saves or more, measured on a 2-core EPYC).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from onnx import numpy_helper
 from gac_jax.export.graph import WINOGRAD_KEY, GraphBuilder
 
 MIN_CHANNELS = 256
+MIN_PIXELS = 1024  # H * W; the 384-channel 6x22 conv of configs/depth_default.py gains nothing
 
 
 def marked_convs(model: onnx.ModelProto) -> dict[str, list[int]]:
@@ -33,9 +35,16 @@ def marked_convs(model: onnx.ModelProto) -> dict[str, list[int]]:
     return {}
 
 
-def apply_winograd(model: onnx.ModelProto, min_channels: int = MIN_CHANNELS) -> int:
-    """Rewrites the marked convs with ``Cin >= min_channels`` in place; returns how many."""
-    marks = {k: v for k, v in marked_convs(model).items() if v[0] >= min_channels}
+def apply_winograd(
+    model: onnx.ModelProto, min_channels: int = MIN_CHANNELS, min_pixels: int = MIN_PIXELS
+) -> int:
+    """Rewrites the marked convs with ``Cin >= min_channels`` and ``H * W >= min_pixels`` in
+    place; returns how many."""
+    marks = {
+        k: v
+        for k, v in marked_convs(model).items()
+        if v[0] >= min_channels and v[1] * v[2] >= min_pixels
+    }
     if not marks:
         return 0
     graph = model.graph
