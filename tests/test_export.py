@@ -187,3 +187,107 @@ def test_deformable_detector_head_is_refused():
     variables = random_variables(model, config, det_builders.init_variables)
     with pytest.raises(ExportError, match="'deformable'.*cannot be exported.*--runtime jax"):
         detector_graph(model, variables, (config.data.height, config.data.width), 17)
+
+
+def _resize_align_corners_np(x: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """float64 bilinear resize, align_corners=True, of NCHW ``x`` (independent reference)."""
+    for axis, n_out in ((2, size[0]), (3, size[1])):
+        n_in = x.shape[axis]
+        src = np.arange(n_out) * ((n_in - 1) / max(n_out - 1, 1))
+        i0 = np.minimum(np.floor(src).astype(int), n_in - 1)
+        i1 = np.minimum(i0 + 1, n_in - 1)
+        shape = [1, 1, 1, 1]
+        shape[axis] = n_out
+        w1 = (src - i0).reshape(shape)
+        x = np.take(x, i0, axis=axis) * (1 - w1) + np.take(x, i1, axis=axis) * w1
+    return x
+
+
+@pytest.mark.parametrize("small,size", [((5, 7), (17, 26)), ((4, 4), (9, 13))])
+def test_resized_single_channel_conv_matches_resize_then_conv(small, size):
+    """The depth head's emitted form (9 taps on the small map, resize, shifted sum) equals a
+    zero-padded 3x3 conv C->1 of the resized map (float64 numpy), at batch 2."""
+    from gac_jax.export.graph import GraphBuilder
+    from gac_jax.export.networks import _resized_single_channel_conv
+
+    rng = np.random.default_rng(1)
+    C = 6
+    kernel = rng.normal(size=(3, 3, C, 1)).astype(np.float32)
+    bias = rng.normal(size=(1,)).astype(np.float32)
+    g = GraphBuilder("head")
+    x = g.add_input("x", ["batch", C, *small])
+    y = _resized_single_channel_conv(g, x, size, {"kernel": kernel, "bias": bias}, 2.3)
+    g.add_output(y, "y", ["batch", 1, *size])
+    xs = rng.normal(size=(2, C, *small)).astype(np.float32)
+    out = session(g.model(17)).run(None, {"x": xs})[0]
+
+    up = np.pad(
+        _resize_align_corners_np(xs.astype(np.float64), size), ((0, 0), (0, 0), (1, 1), (1, 1))
+    )
+    H, W = size
+    ref = np.full((2, 1, H, W), float(bias[0]) + 2.3)
+    for dy in range(3):
+        for dx in range(3):
+            patch = up[:, :, dy : dy + H, dx : dx + W]
+            ref[:, 0] += np.einsum("bchw,c->bhw", patch, kernel[dy, dx, :, 0].astype(np.float64))
+    assert out.shape == ref.shape
+    assert rel_error(out, ref) < 1e-5
+
+
+def test_winograd_f2_5_is_the_5_tap_correlation():
+    """A^T ((G g) * (B^T d)) == [sum_k g[k] d[i + k]]_i for random g, d (float64)."""
+    from gac_jax.export.graph import WINOGRAD_F2_5
+
+    AT, G, BT = (np.asarray(m, np.float64) for m in WINOGRAD_F2_5)
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        g, d = rng.normal(size=5), rng.normal(size=6)
+        ref = [np.dot(g, d[i : i + 5]) for i in range(2)]
+        np.testing.assert_allclose(AT @ ((G @ g) * (BT @ d)), ref, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("size", [(7, 9), (6, 10)])
+def test_winograd_conv_matches_direct_conv(size):
+    """conv5x5_winograd (odd and even maps, batch 2) vs a float64 zero-padded 5x5 conv."""
+    from gac_jax.export.graph import GraphBuilder
+
+    rng = np.random.default_rng(2)
+    C, O = 5, 4
+    kernel = rng.normal(size=(5, 5, C, O)).astype(np.float32)
+    bias = rng.normal(size=(O,)).astype(np.float32)
+    g = GraphBuilder("wino")
+    x = g.add_input("x", ["batch", C, *size])
+    y = g.conv5x5_winograd(x, C, size, {"kernel": kernel, "bias": bias}, relu=False)
+    g.add_output(y, "y", ["batch", O, *size])
+    xs = rng.normal(size=(2, C, *size)).astype(np.float32)
+    out = session(g.model(17)).run(None, {"x": xs})[0]
+    H, W = size
+    padded = np.pad(xs.astype(np.float64), ((0, 0), (0, 0), (2, 2), (2, 2)))
+    ref = np.broadcast_to(bias.astype(np.float64)[None, :, None, None], (2, O, H, W)).copy()
+    for dy in range(5):
+        for dx in range(5):
+            patch = padded[:, :, dy : dy + H, dx : dx + W]
+            ref += np.einsum("bchw,co->bohw", patch, kernel[dy, dx].astype(np.float64))
+    assert rel_error(out, ref) < 1e-5
+
+
+def test_winograd_rewrite_of_the_depth_net_matches_jit():
+    """Every marked decoder conv rewritten (no size limits), batch 2 and 1, vs the jitted model;
+    the file's own graph keeps direct convs and the marks."""
+    from gac_jax.export.winograd import apply_winograd, marked_convs
+
+    model, variables, size, _, apply = case("depth", "gac")
+    proto = depth_graph(model, variables, size, 17)
+    assert len(marked_convs(proto)) == 3  # conv1 of every decoder stage
+    assert apply_winograd(proto, min_channels=10**6) == 0
+    assert apply_winograd(proto, min_channels=0, min_pixels=0) == 3
+    assert not any(
+        n.op_type == "Conv" and n.output[0] in marked_convs(proto) for n in proto.graph.node
+    )
+    onnx.checker.check_model(proto)
+    sess = session(proto)
+    images, P2 = inputs(size)
+    ref = apply(variables, images, P2)
+    for batch in (2, 1):
+        out = run(sess, images[:batch], P2[:batch])
+        assert rel_error(out["log_depth"], ref["log_depth"]["scale_1"][:batch]) < RTOL
