@@ -172,15 +172,9 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     """Runs the command (``threads``: XLA CPU threads in effect); returns the output folder."""
     import jax.numpy as jnp
 
-    from gac_jax.builders.detect3d import eval_transform, filter_options
     from gac_jax.data.files import KittiFormatError
-    from gac_jax.evaluation.detection_model_eval import (
-        load_detector,
-        postprocess_config,
-        use_runtime,
-    )
     from gac_jax.evaluation.detection_pictures import save_pictures
-    from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
+    from gac_jax.evaluation.detector_workdir import load_detector, make_evaluator, use_runtime
     from gac_jax.evaluation.model_mode import load_run_config
 
     workdir = Path(args.workdir)
@@ -198,18 +192,7 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     )
     d = config.data
     source = ImageSource(images, calibs, args.camera, (d.crop_top, d.height, d.width))
-    evaluator = DetectionEvaluator(
-        detector.model,
-        detector.constants,
-        source,
-        eval_transform(config),
-        tuple(config.data.classes),
-        postprocess_config(config),
-        batch_size=args.batch_size,
-        top_k=config.eval.top_k,
-        filter_options=filter_options(config),
-        use_ground_filter=config.anchors.filter,
-    )
+    evaluator = make_evaluator(detector, source, args.batch_size)
     name = Path(args.input).resolve()
     out = Path(args.out) if args.out else workdir / "predict" / (name.stem or "input")
     print(f"{detector.weights}: {len(images)} images -> {out}", flush=True)

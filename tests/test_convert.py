@@ -6,17 +6,14 @@ layer naming and the reference GroundAwareYolo3D (ResNet trunk through layer3, c
 branch with LookGround using grid_sample(border, align_corners=True), AnchorFlatten) built from
 reference_impl.md §3 - run in eval mode with random weights and random BatchNorm statistics;
 the reference state-dict listing ../shared/spec/reference_state_dict.md (that comparison skips
-when the file is absent).
+when the file is absent). Reading .pth files: tests/test_torch_state_dict.py.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import jax
@@ -404,55 +401,6 @@ def test_depth50_state_dict_for_depth101_is_refused(tmp_path, capsys):
     sd18 = state_dict_np(TorchResNet(18, width=8))
     with pytest.raises(pretrained.WeightsError, match="ResNet-18"):
         convert.convert_torchvision_resnet(sd18, depth=50)
-
-
-def test_truncated_and_foreign_files_exit_2_without_a_traceback(tmp_path, capsys):
-    pth = tmp_path / "r18.pth"
-    torch.save(TorchResNet(18, width=8).state_dict(), pth)
-    data = pth.read_bytes()
-    trunc = tmp_path / "truncated.pth"
-    trunc.write_bytes(data[: len(data) // 2])
-    env = dict(os.environ, PYTHONPATH=str(REPO_ROOT), JAX_PLATFORMS="cpu")
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "gac_jax.convert",
-            "torchvision-resnet",
-            str(trunc),
-            str(tmp_path / "o"),
-        ],
-        capture_output=True,
-        text=True,
-        cwd=REPO_ROOT,
-        env=env,
-        timeout=120,
-    )
-    assert proc.returncode == 2, proc.stderr
-    assert proc.stderr.startswith(f"error: {trunc}: cannot read as a PyTorch checkpoint")
-    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
-
-    foreign = tmp_path / "optimizer.pth"
-    torch.save({"epoch": 3, "optimizer": {"lr": 0.1}}, foreign)
-    status, _, err = run_cli(["torchvision-resnet", foreign, tmp_path / "o"], capsys)
-    assert status == 2 and "not a state dict" in err and "epoch (int)" in err
-    status, _, err = run_cli(["gac", tmp_path / "missing.pth", tmp_path / "o"], capsys)
-    assert status == 2 and "file not found" in err
-    # a ResNet file given to the GAC command
-    status, _, err = run_cli(["gac", pth, tmp_path / "o"], capsys)
-    assert status == 2 and "cannot tell" in err
-
-
-def test_module_prefix_is_stripped_and_missing_torch_is_explained(tmp_path, monkeypatch):
-    sd = TorchResNet(18, width=4, fc=False).state_dict()
-    pth = tmp_path / "ddp.pth"
-    torch.save({"state_dict": {f"module.{k}": v for k, v in sd.items()}}, pth)
-    loaded = convert.read_torch_state_dict(pth)
-    assert list(loaded) == list(sd)
-    assert loaded["layer1.0.bn1.num_batches_tracked"].dtype == np.int64
-    monkeypatch.setitem(sys.modules, "torch", None)
-    with pytest.raises(pretrained.WeightsError, match=r"pip install 'gac-jax\[torch\]'"):
-        convert.read_torch_state_dict(pth)
 
 
 def test_converted_layout_refuses_foreign_folders(tmp_path):

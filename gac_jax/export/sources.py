@@ -161,24 +161,14 @@ def load_source(
         config, model, variables, step = restore_depth_model(workdir, step)
         return depth_source(config, model, variables, step=step, workdir=workdir)
 
-    from gac_jax import pretrained
     from gac_jax.builders.detect3d import anchor_layout, build_model
-    from gac_jax.evaluation.detection_model_eval import (
-        restore_workdir_weights,
-        variables_template,
-    )
+    from gac_jax.evaluation.detector_workdir import load_variables, variables_template
     from gac_jax.evaluation.model_mode import load_run_config
 
     config = load_run_config(workdir or ".", config_spec, overrides)
     model = build_model(config, anchor_layout(config).anchors_per_cell)
     template = variables_template(model, config)
-    if checkpoint is not None:
-        try:
-            variables = pretrained.load_converted_variables(checkpoint, template)
-        except pretrained.WeightsError as e:
-            raise KittiFormatError(checkpoint, e.full_text(max_lines=10)) from None
-    else:
-        variables, step = restore_workdir_weights(Path(workdir), step, template)
+    variables, step = load_variables(workdir, template, step=step, checkpoint=checkpoint)
     return detector_source(
         config, model, variables, step=step, checkpoint=checkpoint, workdir=workdir
     )
