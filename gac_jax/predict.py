@@ -174,7 +174,7 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
 
     from gac_jax.data.files import KittiFormatError
     from gac_jax.evaluation.detection_pictures import save_pictures
-    from gac_jax.evaluation.detector_workdir import load_detector, make_evaluator, use_runtime
+    from gac_jax.evaluation.detector_workdir import evaluator_for, load_detector, use_runtime
     from gac_jax.evaluation.model_mode import load_run_config
 
     workdir = Path(args.workdir)
@@ -192,7 +192,7 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     )
     d = config.data
     source = ImageSource(images, calibs, args.camera, (d.crop_top, d.height, d.width))
-    evaluator = make_evaluator(detector, source, args.batch_size)
+    evaluator = evaluator_for(detector, source, args.batch_size)
     name = Path(args.input).resolve()
     out = Path(args.out) if args.out else workdir / "predict" / (name.stem or "input")
     print(f"{detector.weights}: {len(images)} images -> {out}", flush=True)

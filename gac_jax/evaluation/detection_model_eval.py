@@ -34,8 +34,8 @@ from gac_jax.data.sources import open_object_source
 from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.detector_workdir import (
     LoadedDetector,
+    evaluator_for,
     load_detector,
-    make_evaluator,
     use_runtime,
 )
 
@@ -179,7 +179,7 @@ def evaluate_detector_workdir(
     root = prepare_dataset(config.data)
     source = open_object_source(root, split, use_right_image=False)
     batch_size = batch_size or config.data.eval_batch_size
-    evaluator = make_evaluator(detector, source, batch_size)
+    evaluator = evaluator_for(detector, source, batch_size)
     suffix = run_suffix(runtime, precision)
     out = Path(out_dir) if out_dir else workdir / "eval" / f"{split}_{detector.tag}{suffix}"
     result_dir = out / "data"

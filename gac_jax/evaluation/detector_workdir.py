@@ -2,7 +2,7 @@
 
 :func:`load_detector` rebuilds model, anchors and priors from the config and restores the
 weights (a training checkpoint or converted weights, :func:`load_variables`);
-:func:`make_evaluator` wraps it in a :class:`DetectionEvaluator` and :func:`use_runtime` points
+:func:`evaluator_for` wraps it in a :class:`DetectionEvaluator` and :func:`use_runtime` points
 that at an ONNX export instead of JAX. Shared by ``evaluate.py --task detect3d --workdir``
 (:mod:`gac_jax.evaluation.detection_model_eval`), ``python -m gac_jax.predict`` and
 ``python -m gac_jax.export``.
@@ -207,7 +207,7 @@ def load_detector(
     )
 
 
-def make_evaluator(detector: LoadedDetector, source, batch_size: int) -> DetectionEvaluator:
+def evaluator_for(detector: LoadedDetector, source, batch_size: int) -> DetectionEvaluator:
     """The :class:`DetectionEvaluator` of ``detector`` over ``source`` (any frame source with
     images and ``P2``): the config's eval transform, classes, post-processing, ``top_k`` and
     ground filter."""
