@@ -13,8 +13,9 @@ output cotangent masked by ``y > 0`` when the ReLU is fused)::
     dbias  = sum(g)            dscale = sum(g * xhat)
     dx     = scale * rsqrt(var + eps) * (g - dbias / N - xhat * dscale / N)
 
-i.e. two channel reductions and one elementwise pass over the activation, instead of the
-chain of broadcasts and reductions autodiff derives through the mean and the variance. The
+i.e. one paired channel reduction (:func:`_channel_sums`) and one elementwise pass over the
+activation, instead of the chain of broadcasts and reductions autodiff derives through the
+mean and the variance; the forward's two sums are one paired reduction too. The
 batch statistics are one pass like Flax's ``use_fast_variance`` (``E[d^2] - E[d]^2``), but of
 ``d = x - x[0, ..., 0, c]`` (shifted by a sample of each channel), which avoids the
 cancellation of ``E[x^2] - E[x]^2`` when ``|mean| >> std``. The returned statistics carry no
