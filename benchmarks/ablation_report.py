@@ -243,8 +243,10 @@ def sentences(task: Task, stats: list[RowStats]) -> list[str]:
             f"Differences from `{base_row}` beyond the seed spread (min-max ranges over seeds "
             "do not overlap): " + "; ".join(beyond) + "."
         )
-    else:
+    elif within:
         out.append(f"No difference from `{base_row}` exceeds the seed spread.")
+    else:
+        out.append(f"No row can be compared with `{base_row}` yet.")
     if within:
         out.append("Within the seed spread (not conclusive): " + "; ".join(within) + ".")
     if unknown:

@@ -232,3 +232,18 @@ def test_report_statistics_and_unfinished_seeds(tmp_path):
     assert "`conv` 2D@0.7 +0.00 (equal means, within the seed spread)" in text
     assert "Not compared (fewer than 2 finished seeds" in text and "`ohem`, `deformable`" in text
     assert "## depth\n\nNot run yet" in text
+
+
+def test_report_says_when_no_row_can_be_compared_yet(tmp_path):
+    """One finished seed per row (a first session's state): no claim about differences."""
+    rep = _report_module()
+    out = tmp_path / "out"
+    names = ("3D@0.7", "3D@0.5", "BEV@0.5", "2D@0.7")
+    for row, values in (("baseline", (8.3, 36.5, 41.2, 76.0)), ("ohem", (8.3, 35.9, 41.3, 76.3))):
+        _fake_run(out / "detect3d" / row / "seed_0", dict(zip(names, values, strict=True)))
+    plan = {"config": "configs/detect3d_default.py", "overrides": [], "rows": ["baseline", "ohem"]}
+    (out / "plan.json").write_text(json.dumps({"detect3d": plan | {"seeds": [0, 1]}}))
+    text = rep.render(out)
+    assert "No row can be compared with `baseline` yet." in text
+    assert "exceeds the seed spread" not in text
+    assert "1 of 2 seeds, no spread" in text
