@@ -13,7 +13,10 @@ ResNet-18 to stride 16, GAC head with 128 features) on its own, forward and back
   ``torch.autograd.grad`` of a retained graph (backward only, like the JAX VJP).
 
 Calls alternate between the two, medians of wall milliseconds; "step share" multiplies by
-how often the op occurs in the network. Prints the CPU and library versions.
+how often the op occurs in the network. Isolated convolutions run on warm inputs; the last
+line therefore also times a chain as the network runs it: four layer1 convolutions, each
+followed by a ReLU, forward and forward + backward (gradients of a sum of squares wrt the
+input and the four kernels). Prints the CPU and library versions.
 
     python benchmarks/bench_conv_ops.py [--repeats 9] [--no-torch] [--json out.json]
 """
@@ -98,6 +101,44 @@ def _torch_case(torch, hwc, out, k, stride, needs_gx):
     }
 
 
+def _jax_chain(n=4, hwc=(40, 180, 32)):
+    def net(kernels, x):
+        for k in kernels:
+            x = jax.nn.relu(
+                lax.conv_general_dilated(
+                    x, k, (1, 1), ((1, 1), (1, 1)), dimension_numbers=("NHWC", "HWIO", "NHWC")
+                )
+            )
+        return (x * x).sum()
+
+    x = jax.random.normal(jax.random.key(0), (BATCH, *hwc))
+    ks = [0.08 * jax.random.normal(jax.random.key(i + 1), (3, 3, hwc[2], hwc[2])) for i in range(n)]
+    fwd, grad = jax.jit(net), jax.jit(jax.grad(net, argnums=(0, 1)))
+    return {
+        "forward": lambda: jax.block_until_ready(fwd(ks, x)),
+        "fwd+bwd": lambda: jax.block_until_ready(grad(ks, x)),
+    }
+
+
+def _torch_chain(torch, n=4, hwc=(40, 180, 32)):
+    F = torch.nn.functional
+    h, w, c = hwc
+    x = torch.randn(BATCH, c, h, w, requires_grad=True)
+    ks = [(0.08 * torch.randn(c, c, 3, 3)).requires_grad_(True) for _ in range(n)]
+
+    def net():
+        y = x
+        for k in ks:
+            y = F.relu(F.conv2d(y, k, None, 1, 1))
+        return (y * y).sum()
+
+    def forward():
+        with torch.no_grad():
+            return net()
+
+    return {"forward": forward, "fwd+bwd": lambda: torch.autograd.grad(net(), [x, *ks])}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=9)
@@ -116,10 +157,13 @@ def main() -> None:
         cases[name, "jax"] = _jax_case(hwc, out, k, stride, needs_gx)
         if torch is not None:
             cases[name, "torch"] = _torch_case(torch, hwc, out, k, stride, needs_gx)
+    cases["chain", "jax"] = _jax_chain()
+    if torch is not None:
+        cases["chain", "torch"] = _torch_chain(torch)
     for fns in cases.values():  # compile / warm up
         for fn in fns.values():
             fn(), fn()
-    times = {(key, phase): [] for key in cases for phase in ("forward", "backward")}
+    times = {(key, phase): [] for key, fns in cases.items() for phase in fns}
     for _ in range(args.repeats):
         for key, fns in cases.items():
             for phase, fn in fns.items():
@@ -154,7 +198,17 @@ def main() -> None:
     if torch is not None:
         for p in ("forward", "backward"):
             print(f"{p}: jax / torch = {totals['jax', p] / totals['torch', p]:.2f}")
+    chain = {(i, p): statistics.median(times[("chain", i), p]) for i in impls
+             for p in ("forward", "fwd+bwd")}  # fmt: skip
+    print(
+        "chain of 4 layer1 3x3 convolutions + ReLU: "
+        + ", ".join(
+            f"{i} forward {chain[i, 'forward']:.1f} fwd+bwd {chain[i, 'fwd+bwd']:.1f}"
+            for i in impls
+        )
+    )
     result = {"machine": machine, "batch": BATCH, "rows": rows,
+              "chain_ms": {f"{i}_{p}": round(v, 1) for (i, p), v in chain.items()},
               "totals_ms": {f"{i}_{p}": round(v, 1) for (i, p), v in totals.items()}}  # fmt: skip
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))
