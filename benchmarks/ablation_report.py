@@ -87,6 +87,7 @@ DEPTH = Task(
     paper_names=PAPER_DEPTH_NAMES,
 )
 TASKS = {"detect3d": DETECTION, "depth": DEPTH}
+TITLES = {"detect3d": "Detection (paper Table 3)", "depth": "Depth (Base U-Net vs GAC U-Net)"}
 
 
 def run_dir(out: Path, task: str, row: str, seed: int) -> Path:
@@ -261,8 +262,7 @@ def task_section(task: Task, out: Path, plan: dict) -> str:
     rows, seeds = plan["rows"], plan["seeds"]
     stats = collect(task, out, rows, seeds)
     lines = []
-    title = {"detect3d": "Detection (paper Table 3)", "depth": "Depth (Base U-Net vs GAC U-Net)"}
-    lines.append(f"## {title[task.name]}\n")
+    lines.append(f"## {TITLES[task.name]}\n")
     extra = " ".join(plan.get("overrides", [])) or "none"
     lines.append(
         f"Config `{plan['config']}` (row = variant), overrides: `{extra}`; seeds "
@@ -335,7 +335,9 @@ def render(out: Path) -> str:
         "These are numbers **on the embedded generated dataset**, not KITTI: they say whether "
         "each design choice helps here and by more than the seed-to-seed spread; the paper's "
         "columns are its KITTI numbers, for the direction of each difference only. A run's "
-        "note gives its training wall time (all attempts) and CPU.\n",
+        "note gives its training wall time (all attempts, including any time the machine "
+        "spent on other jobs, e.g. a detection and a depth run side by side: not a speed "
+        "measurement; see `benchmarks/bench_train_step.py` for that) and CPU.\n",
         VARIANTS_TEXT,
     ]
     for name, task in TASKS.items():
@@ -344,7 +346,8 @@ def render(out: Path) -> str:
         else:
             rows = ",".join(task.rows)
             parts.append(
-                f"## {name}\n\nNot run yet (no `{name}` runs in `{shown(out)}`). Command:\n\n"
+                f"## {TITLES[name]}\n\nNot run yet (no `{name}` runs in `{shown(out)}`). "
+                "Command:\n\n"
                 f"```bash\npython benchmarks/ablation_table.py --task {name} --rows {rows} "
                 f"--seeds 0,1,2 --out workdirs/ablations\n```\n"
             )

@@ -231,7 +231,7 @@ def test_report_statistics_and_unfinished_seeds(tmp_path):
     assert "`conv` BEV@0.5 +0.75 (better, within the seed spread)" in text
     assert "`conv` 2D@0.7 +0.00 (equal means, within the seed spread)" in text
     assert "Not compared (fewer than 2 finished seeds" in text and "`ohem`, `deformable`" in text
-    assert "## depth\n\nNot run yet" in text
+    assert "## Depth (Base U-Net vs GAC U-Net)\n\nNot run yet" in text
 
 
 def test_report_says_when_no_row_can_be_compared_yet(tmp_path):
@@ -247,3 +247,36 @@ def test_report_says_when_no_row_can_be_compared_yet(tmp_path):
     assert "No row can be compared with `baseline` yet." in text
     assert "exceeds the seed spread" not in text
     assert "1 of 2 seeds, no spread" in text
+
+
+def _fake_depth_run(workdir: Path, silog: float, abs_rel: float, irmse: float, step: int = 4):
+    workdir.mkdir(parents=True)
+    (workdir / "metrics.jsonl").write_text(json.dumps({"step": step, "kind": "train"}) + "\n")
+    result = workdir / "results" / f"step_{step}"
+    result.mkdir(parents=True)
+    metrics = {"silog": silog, "abs_rel": abs_rel, "irmse": irmse, "rmse": 4000.0}
+    (result / "metrics.json").write_text(json.dumps({"metrics": metrics, "num_frames": 3}))
+    (workdir / "ablation_run.json").write_text(json.dumps({"final_step": step, "wall_s": 120.0}))
+
+
+def test_depth_report_lower_is_better(tmp_path):
+    """Depth errors: a lower mean is "better", compared with the paper's GAC - Base sign."""
+    rep = _report_module()
+    out = tmp_path / "out"
+    runs = {
+        "base": [(14.0, 8.5, 11.4), (14.2, 8.7, 11.6)],
+        "gac": [(13.0, 8.6, 11.9), (13.1, 8.4, 12.0)],
+    }
+    for row, seeds in runs.items():
+        for s, values in enumerate(seeds):
+            _fake_depth_run(out / "depth" / row / f"seed_{s}", *values)
+    plan = {"config": "configs/depth_default.py", "overrides": [], "rows": ["base", "gac"]}
+    (out / "plan.json").write_text(json.dumps({"depth": plan | {"seeds": [0, 1]}}))
+    text = rep.render(out)
+    assert "## Detection (paper Table 3)\n\nNot run yet" in text
+    assert "| `base` | 12.78 | 10.12 | 13.46 | 14.10 ± 0.14 [14.00, 14.20] |" in text
+    assert "| `gac` | 1 | done (step 4) | 13.10 | 8.40 | 12.00 | 2 min |" in text
+    # paper: GAC - Base = 12.13 - 12.78 = -0.65 SILog, 12.65 - 13.46 = -0.81 iRMSE
+    assert "`gac` SILog -1.05 (better, beyond the seed spread; paper -0.65, same sign)" in text
+    assert "`gac` iRMSE +0.45 (worse, beyond the seed spread; paper -0.81, opposite sign)" in text
+    assert "`gac` absRel % -0.10 (better, within the seed spread)" in text
