@@ -183,10 +183,15 @@ def _fake_run(workdir: Path, values: dict | None, step: int = 4, failed: bool = 
             "0.50": {"bev": [0, values["BEV@0.5"], 0], "3d": [0, values["3D@0.5"], 0]},
         }
     }  # fmt: skip
+    _finish_run(workdir, {"ap40": ap, "ap11": {}}, step, wall_s=60.0)
+
+
+def _finish_run(workdir: Path, metrics: dict, step: int, wall_s: float):
+    """The final evaluation's metrics.json and the runner's done marker."""
     result = workdir / "results" / f"step_{step}"
     result.mkdir(parents=True)
-    (result / "metrics.json").write_text(json.dumps({"metrics": {"ap40": ap, "ap11": {}}}))
-    (workdir / "ablation_run.json").write_text(json.dumps({"final_step": step, "wall_s": 60.0}))
+    (result / "metrics.json").write_text(json.dumps({"metrics": metrics}))
+    (workdir / "ablation_run.json").write_text(json.dumps({"final_step": step, "wall_s": wall_s}))
 
 
 def test_report_statistics_and_unfinished_seeds(tmp_path):
@@ -252,11 +257,8 @@ def test_report_says_when_no_row_can_be_compared_yet(tmp_path):
 def _fake_depth_run(workdir: Path, silog: float, abs_rel: float, irmse: float, step: int = 4):
     workdir.mkdir(parents=True)
     (workdir / "metrics.jsonl").write_text(json.dumps({"step": step, "kind": "train"}) + "\n")
-    result = workdir / "results" / f"step_{step}"
-    result.mkdir(parents=True)
     metrics = {"silog": silog, "abs_rel": abs_rel, "irmse": irmse, "rmse": 4000.0}
-    (result / "metrics.json").write_text(json.dumps({"metrics": metrics, "num_frames": 3}))
-    (workdir / "ablation_run.json").write_text(json.dumps({"final_step": step, "wall_s": 120.0}))
+    _finish_run(workdir, metrics, step, wall_s=120.0)
 
 
 def test_depth_report_lower_is_better(tmp_path):
