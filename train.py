@@ -22,7 +22,7 @@ import os
 import sys
 import traceback
 
-if __name__ == "__mp_main__":  # a loader worker spawned by this trainer: never outlive it
+if __name__ == "__mp_main__":  # a worker (or fork server) of this trainer: never outlive it
     from gac_jax.data.worker_lifetime import guard_spawned_child
 
     guard_spawned_child()
@@ -68,9 +68,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    from gac_jax.data.worker_lifetime import mark_parent
+    from gac_jax.data.worker_lifetime import mark_owner
 
-    mark_parent()  # helper processes (loader workers) exit when this process dies
+    mark_owner()  # helper processes (loader, generator workers) exit when this process dies
     from gac_jax.cpu_backend import apply_default_xla_flags
 
     apply_default_xla_flags()  # before JAX starts its backend

@@ -21,18 +21,22 @@ KITTI_SAMPLES = SHARED / "data" / "kitti_samples"
 VENDORED_KITTI = REPO_ROOT / "tests" / "data" / "kitti"
 
 
-_JIT_CACHE: str | None = None
+_SESSION_DIRS: list[str] = []
 
 
 def pytest_configure(config):
-    """One persistent XLA compilation cache per test session (subprocesses inherit it).
+    """A fresh embedded-dataset cache and one XLA compilation cache per test session.
 
-    Tests compile the same tiny models many times (in-process and in the train.py
-    subprocesses of the kill/resume tests); the cache makes repeats cheap. It lives in a
-    fresh temporary folder, so no state survives the session.
+    ``GAC_JAX_CACHE`` points at an empty temporary folder, so the suite runs as on a fresh
+    machine: it neither reads nor writes the user's ``~/.cache/gac_jax`` (what a test needs
+    generated, it generates). Tests compile the same tiny models many times (in-process
+    and in the train.py subprocesses of the kill/resume tests); the compilation cache makes
+    repeats cheap. Both live in fresh temporary folders (subprocesses inherit them), so no
+    state survives the session.
     """
-    global _JIT_CACHE
+    os.environ["GAC_JAX_CACHE"] = tempfile.mkdtemp(prefix="gac_jax_test_cache_")
     _JIT_CACHE = tempfile.mkdtemp(prefix="gac_jax_test_jit_cache_")
+    _SESSION_DIRS.extend([os.environ["GAC_JAX_CACHE"], _JIT_CACHE])
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _JIT_CACHE
     os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
@@ -49,8 +53,8 @@ def pytest_configure(config):
 
 
 def pytest_unconfigure(config):
-    if _JIT_CACHE:
-        shutil.rmtree(_JIT_CACHE, ignore_errors=True)
+    for path in _SESSION_DIRS:
+        shutil.rmtree(path, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

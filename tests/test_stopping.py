@@ -113,8 +113,8 @@ def test_second_interrupt_stops_at_once(kitti_object_root, tmp_path):
 
 CHILD = """
 import sys, time
-from gac_jax.data.worker_lifetime import exit_with_parent
-exit_with_parent(poll_s=0.1)
+from gac_jax.data.worker_lifetime import exit_with_owner
+exit_with_owner(poll_s=0.1)
 open(sys.argv[1], "w").close()
 time.sleep(60)
 """
@@ -127,9 +127,11 @@ time.sleep(60)
 
 
 def test_a_worker_exits_when_its_parent_is_killed(tmp_path):
-    """The watchdog alone, in a plain process tree: parent -> child; SIGKILL the parent."""
+    """The watchdog alone, in a plain process tree: parent -> child (no owner named: the
+    parent is the owner); SIGKILL the parent."""
     ready = tmp_path / "ready"
     env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.pop("GAC_JAX_OWNER", None)
     parent = subprocess.Popen(
         [sys.executable, "-c", PARENT, CHILD, str(ready)], stdout=subprocess.PIPE, env=env
     )

@@ -54,6 +54,7 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
             height=s.height,
             width=s.width,
             val_fraction=s.val_fraction,
+            workers=s.get("workers") or None,  # 0 / absent: one per core
         )
     from gac_jax import multiprocess
 

@@ -33,7 +33,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import os
 import sys
 from collections.abc import Callable, Iterator, Sequence
 
@@ -42,7 +41,7 @@ import numpy as np
 
 from gac_jax import geometry
 from gac_jax.data.kitti import KittiObjects
-from gac_jax.data.worker_lifetime import grain_worker_init
+from gac_jax.data.worker_lifetime import Owner, grain_worker_init
 
 DETECTION_KEYS = (
     "image",
@@ -343,7 +342,7 @@ class Loader:
                     num_workers=self.worker_count, per_worker_buffer_size=self.prefetch
                 ),
                 # Workers end when this process dies by any signal (SIGKILL included).
-                worker_init_fn=functools.partial(grain_worker_init, parent_pid=os.getpid()),
+                worker_init_fn=functools.partial(grain_worker_init, owner=Owner.current().token()),
             )
             # Batches arrive as shared-memory arrays; copying them into ordinary
             # arrays lets grain free the shared memory right away.

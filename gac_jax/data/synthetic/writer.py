@@ -37,7 +37,7 @@ from gac_jax.data.kitti import write_calib, write_label, write_split
 from gac_jax.data.synthetic import calibration
 from gac_jax.data.synthetic.frame import frame_rig, make_frame
 from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
-from gac_jax.data.worker_lifetime import exit_with_parent
+from gac_jax.data.worker_lifetime import Owner, exit_with_owner
 
 FORMAT_VERSION = 1  # bump whenever the generated content changes (it keys idempotence)
 MARKER = ".synthetic_in_progress.json"
@@ -201,9 +201,11 @@ def _write_frame(job: _Job, index: int) -> float:
     return time.perf_counter() - start
 
 
-def _init_worker() -> None:
+def _init_worker(owner: str) -> None:
     cv2.setNumThreads(1)
-    exit_with_parent()  # the pool never outlives a killed generator (nor its fork server)
+    # The pool never outlives a killed generator. The owner is named: under forkserver a
+    # worker's parent is the fork server, not the generating process.
+    exit_with_owner(Owner.parse(owner))
 
 
 @dataclasses.dataclass
@@ -380,7 +382,10 @@ def _run(job: _Job, todo: list[int], workers: int | None, progress: bool) -> lis
         context = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
         chunk = max(1, min(16, len(todo) // (workers * 8)))
         with concurrent.futures.ProcessPoolExecutor(
-            max_workers=min(workers, len(todo)), mp_context=context, initializer=_init_worker
+            max_workers=min(workers, len(todo)),
+            mp_context=context,
+            initializer=_init_worker,
+            initargs=(Owner.current().token(),),
         ) as pool:
             for dt in pool.map(_write_frame, [job] * len(todo), todo, chunksize=chunk):
                 seconds.append(dt)
