@@ -74,7 +74,7 @@ def main(argv=None) -> int:
     from gac_jax.cpu_backend import apply_default_xla_flags
 
     apply_default_xla_flags()  # before JAX starts its backend
-    from gac_jax import multiprocess, stopping
+    from gac_jax.training import multiprocess, stopping
 
     try:
         multi = multiprocess.initialize_distributed(

@@ -385,7 +385,7 @@ VARIANTS_TEXT += "\n| row | paper Table 3 | what changes |\n|---|---|---|\n" + "
     f"| `{row}` | {PAPER_TABLE3_NAMES[row]} | {text} |\n" for row, text in VARIANT_ROWS
 )
 VARIANTS_TEXT += """
-OHEM exactly (`gac_jax/detection_loss.py`, `ohem_negative_mask`): the paper says only "we
+OHEM exactly (`gac_jax/detection/detection_loss.py`, `ohem_negative_mask`): the paper says only "we
 filter out half of the easy negative anchors during training". Here, per image `j`, after
 the usual assignment (positive at IoU >= 0.5, negative below 0.4, ignored between), the
 `floor(0.5 * num_neg_j)` negatives with the lowest classification loss (the focal loss of the

@@ -27,7 +27,7 @@ apply_default_xla_flags()
 import jax.numpy as jnp  # noqa: E402
 from machine_info import describe_machine, one_line  # noqa: E402  (benchmarks/ on sys.path)
 
-from gac_jax.evaluation.detection_model_eval import evaluate_detector_workdir  # noqa: E402
+from gac_jax.cli.evaluate_detector import evaluate_detector_workdir  # noqa: E402
 from gac_jax.evaluation.kitti_object import DIFFICULTIES  # noqa: E402
 
 

@@ -44,11 +44,11 @@ def setup():
     import jax.numpy as jnp
     import numpy as np
 
-    from gac_jax.anchor_filter import ground_filter_mask_np
-    from gac_jax.anchor_priors import DetectionConstants
-    from gac_jax.anchors import generate_anchors
     from gac_jax.builders.detect3d import anchor_layout, filter_options
     from gac_jax.config import load_config
+    from gac_jax.detection.anchor_filter import ground_filter_mask_np
+    from gac_jax.detection.anchor_priors import DetectionConstants
+    from gac_jax.detection.anchors import generate_anchors
 
     config = load_config(str(REPO / "configs" / "detect3d_kitti.py"))
     anchors = generate_anchors(anchor_layout(config))
@@ -114,7 +114,7 @@ def main() -> None:
     import jax
     import numpy as np
 
-    from gac_jax.inference import PostprocessConfig, make_predict_fn, postprocess
+    from gac_jax.detection.inference import PostprocessConfig, make_predict_fn, postprocess
 
     print(one_line(describe_machine("numpy", "jax")), flush=True)
     config, constants, options, kept = setup()

@@ -36,12 +36,12 @@ apply_default_xla_flags()
 
 from machine_info import describe_machine  # noqa: E402  (benchmarks/ is on sys.path)
 
-from gac_jax import parallel  # noqa: E402
 from gac_jax.builders import depth as depth_builders  # noqa: E402
 from gac_jax.config import load_config  # noqa: E402
-from gac_jax.train_state import learning_rate_schedule, make_optimizer  # noqa: E402
 from gac_jax.trainers import depth  # noqa: E402
 from gac_jax.trainers.common import create_train_state  # noqa: E402
+from gac_jax.training import parallel  # noqa: E402
+from gac_jax.training.train_state import learning_rate_schedule, make_optimizer  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 # KITTI 2011_09_26 P_rect_02 with the 23 top rows cropped (375 -> 352).

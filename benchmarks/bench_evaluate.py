@@ -1,6 +1,6 @@
 """End-to-end speed of ``evaluate.py --task detect3d --workdir`` (predict + post-process + I/O).
 
-Runs the model mode's code path (:func:`gac_jax.evaluation.detection_model_eval.
+Runs the model mode's code path (:func:`gac_jax.cli.evaluate_detector.
 evaluate_detector_workdir`) on KITTI frames: by default the 13 real labelled frames of
 ``../shared`` repeated (symlinks under new ids) to ``--frames`` frames, in a temporary
 folder. Weights are untrained (random initialisation, saved as converted weights), which
@@ -66,7 +66,7 @@ def random_weights(config_spec: str, overrides: list[str], out: Path) -> None:
 
     from gac_jax.builders.detect3d import anchor_layout, build_model, init_variables
     from gac_jax.config import apply_overrides, load_config
-    from gac_jax.pretrained import save_converted
+    from gac_jax.weights.pretrained import save_converted
 
     config = load_config(str(REPO / config_spec))
     apply_overrides(config, overrides)
@@ -82,12 +82,12 @@ def interleaved_model_timing(workdir, config_spec, overrides, weights, dtypes, r
     import numpy as np
 
     from gac_jax.builders.detect3d import eval_transform, filter_options
+    from gac_jax.cli.evaluate_detector import load_detector
     from gac_jax.data.loader import Loader
     from gac_jax.data.sources import open_object_source
-    from gac_jax.evaluation.detection_model_eval import load_detector
+    from gac_jax.detection.inference import make_predict_fn
     from gac_jax.evaluation.detector_evaluator import InputArrays
-    from gac_jax.evaluation.model_mode import load_run_config
-    from gac_jax.inference import make_predict_fn
+    from gac_jax.trained.run_config import load_run_config
 
     config = load_run_config(workdir, config_spec, overrides)
     b = config.data.eval_batch_size
@@ -130,12 +130,12 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
 
-    from gac_jax.evaluation.model_mode import limit_cpu_threads
+    from gac_jax.cli.model_mode import limit_cpu_threads
 
     threads = limit_cpu_threads(args.threads)
     import jax.numpy as jnp
 
-    from gac_jax.evaluation.detection_model_eval import evaluate_detector_workdir
+    from gac_jax.cli.evaluate_detector import evaluate_detector_workdir
 
     print(
         f"{one_line(describe_machine('numpy', 'jax'))}, {threads} XLA threads; "

@@ -11,7 +11,7 @@ largest difference to a float64 numpy reference:
   reductions over blocks of at most 32 rows).
 * the anchor assignment's argmax over the ground truth of the (8, 14400, 32) IoU matrix (the
   default detector, 32 padded objects): ``jnp.argmax`` (a variadic value/index reduction) vs
-  :func:`gac_jax.assignment.first_argmax` (max, then the smallest index equal to it).
+  :func:`gac_jax.detection.assignment.first_argmax` (max, then the smallest index equal to it).
 
     python benchmarks/bench_reductions.py [--repeats 21]
 """
@@ -35,7 +35,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from machine_info import describe_machine, one_line  # noqa: E402
 
-from gac_jax.assignment import box_iou, first_argmax  # noqa: E402
+from gac_jax.detection.assignment import box_iou, first_argmax  # noqa: E402
 from gac_jax.models.batch_norm import _channel_sums  # noqa: E402
 
 SUM_SHAPES = {

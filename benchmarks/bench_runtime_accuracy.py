@@ -30,8 +30,8 @@ apply_default_xla_flags()
 
 from machine_info import describe_machine, one_line  # noqa: E402  (benchmarks/ on sys.path)
 
+from gac_jax.deploy.runtimes import RuntimeUnavailableError, check_runtime  # noqa: E402
 from gac_jax.evaluation.kitti_object import DIFFICULTIES  # noqa: E402
-from gac_jax.runtimes import RuntimeUnavailableError, check_runtime  # noqa: E402
 
 COMBOS = (
     ("jax", "f32"),
@@ -66,7 +66,7 @@ def available() -> list[tuple[str, str]]:
 
 
 def guard_detector(workdir: str, split, threads, tmp: Path) -> dict:
-    from gac_jax.evaluation.detection_model_eval import evaluate_detector_workdir
+    from gac_jax.cli.evaluate_detector import evaluate_detector_workdir
 
     runs = {}
     for runtime, precision in available():
@@ -101,7 +101,7 @@ def guard_detector(workdir: str, split, threads, tmp: Path) -> dict:
 
 
 def guard_depth(workdir: str, split, tmp: Path) -> dict:
-    from gac_jax.evaluation.depth_workdir import evaluate_workdir
+    from gac_jax.cli.evaluate_depth import evaluate_workdir
 
     runs = {}
     for runtime, precision in available():

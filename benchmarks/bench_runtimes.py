@@ -2,7 +2,7 @@
 
 For the paper configs (configs/detect3d_kitti.py: ResNet-101 at 288x1280;
 configs/depth_kitti.py: ResNet-34 U-Net at 352x1216) and the default configs, the network is
-exported (:mod:`gac_jax.export`) and run as
+exported (:mod:`gac_jax.deploy.export`) and run as
 
 * ``jax f32``: the jitted Flax model (the reference of every ratio); ``jax bf16`` with
   ``--jax-bf16`` (Flax compute dtype bfloat16),
@@ -79,8 +79,8 @@ def paths_for(task, name, args, tmp: Path):
     from gac_jax.builders import depth as depth_builders
     from gac_jax.builders import detect3d as det_builders
     from gac_jax.config import apply_overrides, load_config
-    from gac_jax.export.networks import depth_graph, detector_graph
-    from gac_jax.runtimes import (
+    from gac_jax.deploy.export.networks import depth_graph, detector_graph
+    from gac_jax.deploy.runtimes import (
         DEPTH_OUTPUTS,
         DETECTOR_OUTPUTS,
         OnnxNetwork,
@@ -150,13 +150,13 @@ def paths_for(task, name, args, tmp: Path):
         return {(f"{k[0]} {k[1]}", "network"): c for k, c in calls.items()}
 
     # detector: full path image file -> KITTI objects, and the network alone
-    from gac_jax.anchor_priors import make_detection_constants
-    from gac_jax.anchors import generate_anchors
+    from gac_jax.cli.evaluate_detector import postprocess_config
     from gac_jax.data.loader import collate
     from gac_jax.data.sources import open_object_source
-    from gac_jax.evaluation.detection_model_eval import postprocess_config
+    from gac_jax.detection.anchor_priors import make_detection_constants
+    from gac_jax.detection.anchors import generate_anchors
+    from gac_jax.detection.inference import make_predict_fn, postprocess
     from gac_jax.evaluation.detector_evaluator import InputArrays
-    from gac_jax.inference import make_predict_fn, postprocess
 
     priors = det_builders.compute_priors(config, KITTI, layout, tmp / f"priors_{name}")
     constants = make_detection_constants(
@@ -205,7 +205,7 @@ def paths_for(task, name, args, tmp: Path):
 def main() -> None:
     import numpy as np
 
-    from gac_jax.runtimes import cpu_flags
+    from gac_jax.deploy.runtimes import cpu_flags
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--configs", default="paper,default")

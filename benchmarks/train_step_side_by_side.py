@@ -33,9 +33,9 @@ PHASES = ("forward", "fwd+bwd", "step")
 
 
 def _jax_detector(case: dict, plain: bool) -> dict:
-    from gac_jax.anchor_filter import ground_mask_from_constants
     from gac_jax.builders import detect3d as builders
-    from gac_jax.detection_loss import detection_loss
+    from gac_jax.detection.anchor_filter import ground_mask_from_constants
+    from gac_jax.detection.detection_loss import detection_loss
     from gac_jax.models.resnet import plain_formulation
     from gac_jax.trainers import detect3d
 
@@ -74,14 +74,14 @@ def _jax_detector(case: dict, plain: bool) -> dict:
 def _jax_depth(plain: bool, batch_size: int = 8) -> dict:
     from bench_depth import inputs  # benchmarks/ is on sys.path
 
-    from gac_jax import parallel
     from gac_jax.builders import depth as depth_builders
     from gac_jax.config import load_config
-    from gac_jax.depth_loss import depth_loss
+    from gac_jax.depth.depth_loss import depth_loss
     from gac_jax.models.resnet import plain_formulation
-    from gac_jax.train_state import learning_rate_schedule, make_optimizer
     from gac_jax.trainers import depth
     from gac_jax.trainers.common import create_train_state
+    from gac_jax.training import parallel
+    from gac_jax.training.train_state import learning_rate_schedule, make_optimizer
 
     config = load_config(str(REPO / "configs" / "depth_default.py"))
     model = depth_builders.build_model(config, prior_mean=2.6)
@@ -192,7 +192,7 @@ def _timed(fn) -> tuple[float, float]:
 
 def compare(networks: list[str], rounds: int, with_torch: bool) -> dict:
     """Times every (network, implementation, phase) round-robin; prints and returns the table."""
-    from bench_train_step import CONFIGS, build_detector_case
+    from detector_case import CONFIGS, build_detector_case
     from machine_info import describe_machine, one_line
 
     impls: dict[tuple[str, str], dict] = {}

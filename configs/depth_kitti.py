@@ -8,7 +8,7 @@ drives under ``raw/<date>/``)::
         data.val_selection=ROOT/depth_selection/val_selection_cropped
 
 ``model.pretrained_backbone`` is an ImageNet ResNet-34 converted with ``python -m
-gac_jax.convert torchvision-resnet --depth 34 resnet34-b627a593.pth OUT`` (the paper starts
+gac_jax.weights.convert torchvision-resnet --depth 34 resnet34-b627a593.pth OUT`` (the paper starts
 from a pretrained encoder). Without ``data.val_selection`` the run evaluates on every
 annotated frame of ``data_depth_annotated/val``. Test-server PNGs::
 
@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import ml_collections
 
-from gac_jax.depth_loss import PAPER_LOSS_OPTIONS, REFERENCE_LOSS_OPTIONS
+from gac_jax.depth.depth_loss import PAPER_LOSS_OPTIONS, REFERENCE_LOSS_OPTIONS
 
 
 def _loss(options) -> ml_collections.ConfigDict:

@@ -7,7 +7,7 @@ Command (KITTI object folder with ImageSets/{train,val}.txt = Chen's split)::
         model.pretrained_backbone=/data/resnet101_flax
 
 ``model.pretrained_backbone`` is an ImageNet ResNet-101 converted with
-``python -m gac_jax.convert torchvision-resnet --depth 101 resnet101-5d3b4d8f.pth OUT``.
+``python -m gac_jax.weights.convert torchvision-resnet --depth 101 resnet101-5d3b4d8f.pth OUT``.
 Variants (comma-separated, e.g. ``:multiclass,conv``): ``multiclass`` (Car, Pedestrian,
 Cyclist) and the rows of the paper's Table 3 (see :func:`apply_ablation`): ``nofilter``,
 ``ohem``, ``conv``, ``disparity``, ``deformable``; ``baseline`` (= no variant) is the paper's
@@ -153,7 +153,8 @@ def apply_ablation(c: ml_collections.ConfigDict, variants: set[str]) -> None:
     * ``nofilter``: "w/o Anchor Filtering": no ground-plane filter, in training and at test;
     * ``ohem``: "w OHEM": no ground-plane filter; in training the easiest half of each
       image's negative anchors (lowest focal loss) is left out of the loss
-      (``loss.ohem_drop_fraction = 0.5``, see :mod:`gac_jax.detection_loss`); no filter at test;
+      (``loss.ohem_drop_fraction = 0.5``, see :mod:`gac_jax.detection.detection_loss`);
+      no filter at test;
     * ``conv``: "w Conv": GAC replaced by conv3x3 + ReLU;
     * ``disparity``: "w DisparityConv": conv3x3 over [disparity prior || features] + ReLU;
     * ``deformable``: "w Deformable Conv": modulated deformable conv v2 3x3 + ReLU.

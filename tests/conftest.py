@@ -101,7 +101,7 @@ def tiny_detect3d_workdir(kitti_object_root: Path, tmp_path_factory) -> Path:
     """A detection workdir trained 2 steps (``configs/detect3d_default.py:tiny`` on the vendored
     real frames, score threshold 0), evaluated at the end: ``results/step_2/{data,pictures}``.
 
-    Shared by the inference tests (evaluate.py model mode, gac_jax.predict); treat it as
+    Shared by the inference tests (evaluate.py model mode, gac_jax.cli.predict); treat it as
     read-only (copy it to change it).
     """
     from gac_jax.config import apply_overrides, load_config

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from flax import traverse_util
 
-from gac_jax import convert, pretrained
 from gac_jax.builders.detect3d import anchor_layout, build_model, init_variables, loss_config
-from gac_jax.checkpointing import Checkpoints
 from gac_jax.config import apply_overrides, load_config
 from gac_jax.models.detection_head import DetectionHead
 from gac_jax.trainers import detect3d
+from gac_jax.training.checkpointing import Checkpoints
+from gac_jax.weights import convert, pretrained
 from tests.conftest import TINY_DETECT3D_OVERRIDES
 
 REPO = Path(__file__).resolve().parents[1]

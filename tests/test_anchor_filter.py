@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 
 from gac_jax import geometry
-from gac_jax.anchor_filter import (
+from gac_jax.data.files import read_image
+from gac_jax.data.kitti import KittiObjectLayout, read_calib, read_label
+from gac_jax.detection.anchor_filter import (
     ground_filter_mask,
     ground_filter_mask_np,
     ground_mask_from_constants,
 )
-from gac_jax.anchor_priors import AnchorPriors, make_detection_constants
-from gac_jax.anchors import AnchorLayout, box_iou_np, generate_anchors
-from gac_jax.data.files import read_image
-from gac_jax.data.kitti import KittiObjectLayout, read_calib, read_label
+from gac_jax.detection.anchor_priors import AnchorPriors, make_detection_constants
+from gac_jax.detection.anchors import AnchorLayout, box_iou_np, generate_anchors
 
 P_SIMPLE = np.array([[700.0, 0, 600, 0], [0, 700, 180, 0], [0, 0, 1, 0]])
 

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from gac_jax.anchor_priors import (
+from gac_jax.data.kitti import KittiObjects
+from gac_jax.detection.anchor_priors import (
     INVALID_MEAN,
     INVALID_STD,
     AnchorPriors,
@@ -19,8 +20,7 @@ from gac_jax.anchor_priors import (
     prior_frame_from_objects,
     save_priors,
 )
-from gac_jax.anchors import AnchorLayout, generate_anchors
-from gac_jax.data.kitti import KittiObjects
+from gac_jax.detection.anchors import AnchorLayout, generate_anchors
 
 SMALL = AnchorLayout(image_size=(48, 96), base_size=16.0, scales=(1.0, 1.5, 2.0, 3.0))
 

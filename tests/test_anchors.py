@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import shapely
 
-from gac_jax.anchors import AnchorLayout, box_iou_np, generate_anchors, nearest_bin
+from gac_jax.detection.anchors import AnchorLayout, box_iou_np, generate_anchors, nearest_bin
 
 REFERENCE_SIZES = [24.0, 28.5, 33.9, 40.4, 48.0, 57.1, 67.9, 80.7, 96.0, 114.2, 135.8, 161.5]
 REFERENCE_SIZES += [192.0, 228.3, 271.5, 322.9]

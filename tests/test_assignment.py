@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gac_jax.anchors import AnchorLayout, box_iou_np, generate_anchors
-from gac_jax.assignment import assign_anchors, box_iou, first_argmax
+from gac_jax.detection.anchors import AnchorLayout, box_iou_np, generate_anchors
+from gac_jax.detection.assignment import assign_anchors, box_iou, first_argmax
 
 LAYOUT = AnchorLayout(image_size=(48, 96), base_size=16.0, scales=(1.0, 1.5, 2.0, 3.0))
 

@@ -8,11 +8,18 @@ import numpy as np
 import pytest
 
 from gac_jax import geometry
-from gac_jax.anchor_priors import AnchorPriors, make_detection_constants
-from gac_jax.anchors import AnchorLayout, box_iou_np, generate_anchors
-from gac_jax.box_coding import decode, decode_np, decode_outputs, encode, encode_np, gather_priors
 from gac_jax.data.files import read_image
 from gac_jax.data.kitti import KittiObjectLayout, read_calib, read_label
+from gac_jax.detection.anchor_priors import AnchorPriors, make_detection_constants
+from gac_jax.detection.anchors import AnchorLayout, box_iou_np, generate_anchors
+from gac_jax.detection.box_coding import (
+    decode,
+    decode_np,
+    decode_outputs,
+    encode,
+    encode_np,
+    gather_priors,
+)
 
 
 def _wrap(a):

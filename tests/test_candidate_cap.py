@@ -15,13 +15,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gac_jax.anchor_filter import ground_filter_mask_np
-from gac_jax.anchor_priors import DetectionConstants
-from gac_jax.anchors import generate_anchors
-from gac_jax.box_coding import BOX_DELTA_STDS
 from gac_jax.builders.detect3d import anchor_layout, filter_options
 from gac_jax.config import load_config
-from gac_jax.inference import PostprocessConfig, candidates_to_objects, make_predict_fn
+from gac_jax.detection.anchor_filter import ground_filter_mask_np
+from gac_jax.detection.anchor_priors import DetectionConstants
+from gac_jax.detection.anchors import generate_anchors
+from gac_jax.detection.box_coding import BOX_DELTA_STDS
+from gac_jax.detection.inference import (
+    PostprocessConfig,
+    candidates_to_objects,
+    make_predict_fn,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 # KITTI 000001 calibration after crop 100 + resize to 288 (close enough for the filter).

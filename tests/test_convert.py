@@ -1,5 +1,5 @@
-"""Tests of the PyTorch weight import (gac_jax.convert) and the converted-weights layout
-(gac_jax.pretrained).
+"""Tests of the PyTorch weight import (gac_jax.weights.convert) and the converted-weights layout
+(gac_jax.weights.pretrained).
 
 Oracles: plain-PyTorch models (tests/torch_reference_models.py) - a ResNet with torchvision's
 layer naming and the reference GroundAwareYolo3D (ResNet trunk through layer3, cls branch, reg
@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 from flax import traverse_util
 
-from gac_jax import convert, pretrained
 from gac_jax.models.detector import Detector
 from gac_jax.models.resnet import ResNet
+from gac_jax.weights import convert, pretrained
 
 torch = pytest.importorskip("torch")
 from torch_reference_models import (  # noqa: E402  (tests/ is on sys.path under pytest)
@@ -406,7 +406,7 @@ def test_depth50_state_dict_for_depth101_is_refused(tmp_path, capsys):
 def test_converted_layout_refuses_foreign_folders(tmp_path):
     with pytest.raises(pretrained.WeightsError, match="no converted weights here"):
         pretrained.read_converted_meta(tmp_path)
-    from gac_jax.checkpointing import Checkpoints
+    from gac_jax.training.checkpointing import Checkpoints
 
     with Checkpoints(tmp_path / "train") as ckpts:  # a training workdir
         ckpts.save(5, {"params": {"w": np.zeros(2, np.float32)}}, {"task": "detect3d"})

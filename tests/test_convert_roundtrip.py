@@ -2,10 +2,10 @@
 
 The reference GroundAwareYolo3D (plain PyTorch, tests/torch_reference_models.py) at the
 layout of ``configs/detect3d_default.py:tiny`` with random weights (GAC alpha non-zero, the
-paper's offset formula) is saved as a ``.pth``, converted with ``python -m gac_jax.convert
+paper's offset formula) is saved as a ``.pth``, converted with ``python -m gac_jax.weights.convert
 gac`` and evaluated by ``python evaluate.py --task detect3d --checkpoint ... --data ...`` on
 a tiny embedded dataset. Oracle: the PyTorch model's own outputs on the evaluated images,
-decoded and post-processed by the same :mod:`gac_jax.inference` code. Checked: network
+decoded and post-processed by the same :mod:`gac_jax.detection.inference` code. Checked: network
 outputs (converted Flax variables vs PyTorch, 1e-4), a result file for every val frame
 holding those detections, and the metrics JSON (the offline mode's schema and values).
 """
@@ -22,18 +22,18 @@ import jax
 import numpy as np
 import pytest
 
-from gac_jax import convert
 from gac_jax.builders.detect3d import eval_transform, filter_options
+from gac_jax.cli import evaluate as cli
+from gac_jax.cli.evaluate_detector import load_detector, postprocess_config
 from gac_jax.data.kitti import read_label, read_split
 from gac_jax.data.loader import collate
 from gac_jax.data.sources import open_object_source
 from gac_jax.data.synthetic import generate_dataset
-from gac_jax.evaluation import cli
-from gac_jax.evaluation.detection_model_eval import load_detector, postprocess_config
+from gac_jax.detection.inference import make_predict_fn, postprocess
 from gac_jax.evaluation.detector_evaluator import InputArrays, ground_truth
 from gac_jax.evaluation.kitti_object import evaluate_detections
-from gac_jax.evaluation.model_mode import load_run_config
-from gac_jax.inference import make_predict_fn, postprocess
+from gac_jax.trained.run_config import load_run_config
+from gac_jax.weights import convert
 
 torch = pytest.importorskip("torch")
 from torch_reference_models import GroundAwareYolo3D, randomize_  # noqa: E402
@@ -103,7 +103,7 @@ def test_converted_reference_checkpoint_through_evaluate_py(tmp_path):
     pth = tmp_path / "gac_tiny.pth"
     torch.save(tmodel.state_dict(), pth)
 
-    # python -m gac_jax.convert gac IN.pth OUT --config TINY --offset-formula paper
+    # python -m gac_jax.weights.convert gac IN.pth OUT --config TINY --offset-formula paper
     converted = tmp_path / "converted"
     argv = ["gac", pth, converted, "--config", TINY, "--offset-formula", "paper"]
     assert convert.main([str(a) for a in argv]) == 0

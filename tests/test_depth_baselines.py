@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from gac_jax.cli import evaluate as cli
 from gac_jax.data.files import KittiFormatError, read_depth_png
-from gac_jax.evaluation import cli
 from gac_jax.evaluation.depth_baselines import RowMeanPredictor, fit_row_log_depth
 from gac_jax.evaluation.depth_evaluator import prediction_relpath
 

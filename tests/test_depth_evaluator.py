@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from gac_jax import geometry
+from gac_jax.cli import evaluate as cli
 from gac_jax.data import transforms
 from gac_jax.data.files import read_depth_png, write_png
 from gac_jax.data.kitti_depth import read_cam_to_cam
 from gac_jax.data.sources import KittiDepthSource, new_sample
-from gac_jax.evaluation import cli
 from gac_jax.evaluation.depth_evaluator import (
     BASELINE_MAX_DEPTH,
     DepthEvaluator,

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gac_jax import depth_loss as dl
+from gac_jax.depth import depth_loss as dl
 
 # ---------------------------------------------------------------------------------------------
 # numpy references

@@ -14,11 +14,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gac_jax.anchor_priors import AnchorPriors, make_detection_constants
-from gac_jax.anchors import AnchorLayout, box_iou_np, generate_anchors
-from gac_jax.assignment import assign_anchors
-from gac_jax.box_coding import encode, encode_np, gather_priors
-from gac_jax.detection_loss import (
+from gac_jax.detection.anchor_priors import AnchorPriors, make_detection_constants
+from gac_jax.detection.anchors import AnchorLayout, box_iou_np, generate_anchors
+from gac_jax.detection.assignment import assign_anchors
+from gac_jax.detection.box_coding import encode, encode_np, gather_priors
+from gac_jax.detection.detection_loss import (
     REGRESSION_WEIGHTS,
     DetectionLossConfig,
     binary_cross_entropy_with_logits,

@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gac_jax import pretrained
-from gac_jax.checkpointing import Checkpoints
+from gac_jax.cli import evaluate as cli
 from gac_jax.data.kitti import read_split
-from gac_jax.evaluation import cli
+from gac_jax.training.checkpointing import Checkpoints
+from gac_jax.weights import pretrained
 from tests.conftest import TINY_DETECT3D_OVERRIDES
 
 REPO = Path(__file__).resolve().parents[1]

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gac_jax.cli import evaluate as cli
 from gac_jax.data.files import read_depth_png, write_depth_png
 from gac_jax.data.kitti import KittiObjectLayout, read_label, write_label, write_split
-from gac_jax.evaluation import cli
 from gac_jax.evaluation.depth_metrics import DEPTH_METRICS
 from gac_jax.evaluation.kitti_object import evaluate_detections
 

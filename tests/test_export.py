@@ -1,4 +1,4 @@
-"""ONNX export (gac_jax.export): exported float32 networks vs the jitted Flax models.
+"""ONNX export (gac_jax.deploy.export): exported float32 networks vs the jitted Flax models.
 
 Tiny models with perturbed weights (non-trivial BatchNorm statistics, GAC ``alpha`` != 0, non-zero
 output convs) so every branch contributes; outputs compared at 1e-4 relative (max |diff| / max
@@ -20,7 +20,7 @@ ort = pytest.importorskip("onnxruntime", reason="deploy extra (onnxruntime) not 
 from gac_jax.builders import depth as depth_builders  # noqa: E402
 from gac_jax.builders import detect3d as det_builders  # noqa: E402
 from gac_jax.config import apply_overrides, load_config  # noqa: E402
-from gac_jax.export.networks import ExportError, depth_graph, detector_graph  # noqa: E402
+from gac_jax.deploy.export.networks import ExportError, depth_graph, detector_graph  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RTOL = 1e-4
@@ -207,8 +207,8 @@ def _resize_align_corners_np(x: np.ndarray, size: tuple[int, int]) -> np.ndarray
 def test_resized_single_channel_conv_matches_resize_then_conv(small, size):
     """The depth head's emitted form (9 taps on the small map, resize, shifted sum) equals a
     zero-padded 3x3 conv C->1 of the resized map (float64 numpy), at batch 2."""
-    from gac_jax.export.graph import GraphBuilder
-    from gac_jax.export.networks import _resized_single_channel_conv
+    from gac_jax.deploy.export.graph import GraphBuilder
+    from gac_jax.deploy.export.networks import _resized_single_channel_conv
 
     rng = np.random.default_rng(1)
     C = 6
@@ -236,7 +236,7 @@ def test_resized_single_channel_conv_matches_resize_then_conv(small, size):
 
 def test_winograd_f2_5_is_the_5_tap_correlation():
     """A^T ((G g) * (B^T d)) == [sum_k g[k] d[i + k]]_i for random g, d (float64)."""
-    from gac_jax.export.graph import WINOGRAD_F2_5
+    from gac_jax.deploy.export.graph import WINOGRAD_F2_5
 
     AT, G, BT = (np.asarray(m, np.float64) for m in WINOGRAD_F2_5)
     rng = np.random.default_rng(3)
@@ -249,7 +249,7 @@ def test_winograd_f2_5_is_the_5_tap_correlation():
 @pytest.mark.parametrize("size", [(7, 9), (6, 10)])
 def test_winograd_conv_matches_direct_conv(size):
     """conv5x5_winograd (odd and even maps, batch 2) vs a float64 zero-padded 5x5 conv."""
-    from gac_jax.export.graph import GraphBuilder
+    from gac_jax.deploy.export.graph import GraphBuilder
 
     rng = np.random.default_rng(2)
     C, O = 5, 4
@@ -274,7 +274,7 @@ def test_winograd_conv_matches_direct_conv(size):
 def test_winograd_rewrite_of_the_depth_net_matches_jit():
     """Every marked decoder conv rewritten (no size limits), batch 2 and 1, vs the jitted model;
     the file's own graph keeps direct convs and the marks."""
-    from gac_jax.export.winograd import apply_winograd, marked_convs
+    from gac_jax.deploy.export.winograd import apply_winograd, marked_convs
 
     model, variables, size, _, apply = case("depth", "gac")
     proto = depth_graph(model, variables, size, 17)

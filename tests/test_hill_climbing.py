@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gac_jax import hill_climbing as hc
 from gac_jax.data.sources import KittiObjectSource
+from gac_jax.detection import hill_climbing as hc
 
 # A KITTI-like P2 (frame 000008) and image size.
 P2 = np.array(

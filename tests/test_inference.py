@@ -21,19 +21,24 @@ import numpy as np
 import pytest
 
 from gac_jax import geometry
-from gac_jax.anchor_priors import DetectionConstants
-from gac_jax.anchors import box_iou_np, generate_anchors
-from gac_jax.box_coding import encode_np
 from gac_jax.builders.detect3d import anchor_layout, eval_transform
+from gac_jax.cli import evaluate as cli
 from gac_jax.config import load_config
 from gac_jax.data import transforms as tf
 from gac_jax.data.kitti import KittiObjectLayout, write_label
 from gac_jax.data.loader import collate, detection_arrays
 from gac_jax.data.sources import KittiObjectSource
-from gac_jax.evaluation import cli
+from gac_jax.detection.anchor_priors import DetectionConstants
+from gac_jax.detection.anchors import box_iou_np, generate_anchors
+from gac_jax.detection.box_coding import encode_np
+from gac_jax.detection.hill_climbing import optimize_rotation_y
+from gac_jax.detection.inference import (
+    PostprocessConfig,
+    candidates_to_objects,
+    make_predict_fn,
+    postprocess,
+)
 from gac_jax.evaluation.detector_evaluator import InputArrays
-from gac_jax.hill_climbing import optimize_rotation_y
-from gac_jax.inference import PostprocessConfig, candidates_to_objects, make_predict_fn, postprocess
 
 REPO = Path(__file__).resolve().parents[1]
 CLASSES = ("Car", "Pedestrian", "Cyclist")
@@ -320,8 +325,7 @@ def test_cpu_thread_count_follows_the_affinity(tmp_path):
     script = textwrap.dedent(
         """
         import sys
-        from gac_jax.evaluation.model_mode import (
-            available_cores, limit_cpu_threads, xla_thread_count)
+        from gac_jax.cli.model_mode import available_cores, limit_cpu_threads, xla_thread_count
         want = None if sys.argv[1] == "all" else int(sys.argv[1])
         n = limit_cpu_threads(want)
         import jax.numpy as jnp

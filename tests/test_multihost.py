@@ -43,7 +43,7 @@ import jax
 import numpy as np
 import pytest
 
-from gac_jax.checkpointing import Checkpoints
+from gac_jax.training.checkpointing import Checkpoints
 
 REPO = Path(__file__).resolve().parents[1]
 TOTAL_STEPS = 12
@@ -293,7 +293,7 @@ def test_two_processes_train_like_one_survive_a_kill_and_resume_across_counts(
 DIES_DURING_SAVE = WORKER.replace(
     "sys.exit(train.main",
     """import os, signal, jax
-from gac_jax.checkpointing import Checkpoints
+from gac_jax.training.checkpointing import Checkpoints
 save = Checkpoints.save
 def dying_save(self, step, state, meta=None, wait=True):
     if jax.process_index() == 1 and step == 2:
@@ -333,7 +333,7 @@ def test_a_peer_lost_while_a_checkpoint_is_written_is_a_clean_stop(
 HANGING_WORKER = f"""
 import os, sys, time
 sys.path.insert(0, {str(REPO)!r})
-from gac_jax import multiprocess, parallel, step_watchdog
+from gac_jax.training import multiprocess, parallel, step_watchdog
 process_id, port = int(sys.argv[1]), sys.argv[2]
 multiprocess.initialize_distributed(f"localhost:{{port}}", 2, process_id, step_timeout=3)
 import jax, numpy as np

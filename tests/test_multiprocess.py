@@ -1,4 +1,4 @@
-"""gac_jax.multiprocess and gac_jax.parallel in one process: start-up, shards, watchdog.
+"""The multiprocess and parallel modules in one process: start-up, shards, watchdog.
 
 The multi-process behaviour itself is tested with real processes in test_multihost.py.
 """
@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gac_jax import multiprocess, parallel, step_watchdog, stopping
+from gac_jax.training import multiprocess, parallel, step_watchdog, stopping
 
 
 @pytest.fixture(autouse=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gac_jax.nms import batched_nms, box_iou_matrix, nms
+from gac_jax.detection.nms import batched_nms, box_iou_matrix, nms
 
 
 def _iou(a, b) -> float:

@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gac_jax.anchor_priors import make_detection_constants
-from gac_jax.detection_loss import (
+from gac_jax.detection.anchor_priors import make_detection_constants
+from gac_jax.detection.detection_loss import (
     DetectionLossConfig,
     detection_loss,
     detection_loss_terms,
@@ -94,7 +94,7 @@ def test_ohem_in_the_loss_removes_the_dropped_negatives_from_sum_and_normaliser(
 
     # Independent recomputation: the per-anchor focal loss (float64 numpy of the same targets)
     # and the numpy OHEM reference.
-    from gac_jax.assignment import IGNORE, assign_anchors
+    from gac_jax.detection.assignment import IGNORE, assign_anchors
 
     a = assign_anchors(
         const.anchor_boxes,

@@ -1,4 +1,4 @@
-"""python -m gac_jax.predict: arbitrary KITTI-format images -> result files and pictures."""
+"""python -m gac_jax.cli.predict: arbitrary KITTI-format images -> result files and pictures."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from gac_jax import predict
+from gac_jax.cli import predict
 from gac_jax.data.files import read_image, write_png
 from gac_jax.data.kitti import read_calib, read_label, write_calib
 from gac_jax.data.transforms import resize_affine

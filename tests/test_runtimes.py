@@ -19,11 +19,11 @@ import pytest
 pytest.importorskip("onnx", reason="deploy extra (onnx) not installed")
 pytest.importorskip("onnxruntime", reason="deploy extra (onnxruntime) not installed")
 
-from gac_jax import runtimes  # noqa: E402
+from gac_jax.cli import evaluate as cli  # noqa: E402
 from gac_jax.data.files import KittiFormatError  # noqa: E402
-from gac_jax.evaluation import cli  # noqa: E402
-from gac_jax.export import __main__ as export_cli  # noqa: E402
-from gac_jax.export import artifact  # noqa: E402
+from gac_jax.deploy import runtimes  # noqa: E402
+from gac_jax.deploy.export import __main__ as export_cli  # noqa: E402
+from gac_jax.deploy.export import artifact  # noqa: E402
 
 PRINTED = 0.01 + 1e-9  # result files print 2 decimals
 
@@ -169,10 +169,10 @@ def test_bf16_without_native_support_is_one_line(monkeypatch):
 
 
 def test_predict_with_openvino_gives_the_jax_results(onnx_run, kitti_object_root, tmp_path, capsys):
-    """``python -m gac_jax.predict --runtime openvino`` (float32, batch 3: the last batch is
+    """``python -m gac_jax.cli.predict --runtime openvino`` (float32, batch 3: the last batch is
     padded) on the training images, reusing the run's export: the trainer's results."""
     pytest.importorskip("openvino", reason="deploy extra (openvino) not installed")
-    from gac_jax import predict
+    from gac_jax.cli import predict
 
     wd, out = onnx_run[0], tmp_path / "out"
     images = kitti_object_root / "training" / "image_2"

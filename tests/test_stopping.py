@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from gac_jax.multiprocess import EXIT_INTERRUPTED
+from gac_jax.training.multiprocess import EXIT_INTERRUPTED
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = str(REPO / "configs" / "detect3d_default.py:tiny")

@@ -11,8 +11,8 @@ import pytest
 pytest.importorskip("tensorboard")  # a dependency of the project (pyproject.toml)
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
 
-from gac_jax.metrics_writer import MetricsWriter  # noqa: E402
-from gac_jax.tensorboard_writer import TensorBoardWriter, flatten_scalars  # noqa: E402
+from gac_jax.training.metrics_writer import MetricsWriter  # noqa: E402
+from gac_jax.training.tensorboard_writer import TensorBoardWriter, flatten_scalars  # noqa: E402
 
 
 def read(logdir) -> EventAccumulator:
@@ -75,7 +75,7 @@ def test_scalars_images_and_resume_read_back(tmp_path):
 def test_no_tensorflow_or_torch_is_imported(tmp_path):
     code = (
         "import sys\n"
-        "from gac_jax.tensorboard_writer import TensorBoardWriter\n"
+        "from gac_jax.training.tensorboard_writer import TensorBoardWriter\n"
         f"w = TensorBoardWriter({str(tmp_path)!r}); w.scalars(1, {{'a': 1.0}}); w.close()\n"
         "bad = [m for m in ('tensorflow', 'torch') if m in sys.modules]\n"
         "assert not bad, bad\n"

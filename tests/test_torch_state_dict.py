@@ -1,5 +1,5 @@
-"""Tests of reading PyTorch ``.pth`` files (gac_jax.torch_state_dict), through the
-``python -m gac_jax.convert`` command where the exit status and message matter.
+"""Tests of reading PyTorch ``.pth`` files (gac_jax.weights.torch_state_dict), through the
+``python -m gac_jax.weights.convert`` command where the exit status and message matter.
 
 Oracle: state dicts of the plain-PyTorch ResNet (tests/torch_reference_models.py) saved with
 ``torch.save``; truncated and foreign files are made from them.
@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gac_jax import convert, pretrained
-from gac_jax.torch_state_dict import read_torch_state_dict
+from gac_jax.weights import convert, pretrained
+from gac_jax.weights.torch_state_dict import read_torch_state_dict
 
 torch = pytest.importorskip("torch")
 from torch_reference_models import TorchResNet  # noqa: E402  (tests/ is on sys.path)
@@ -41,7 +41,7 @@ def test_truncated_and_foreign_files_exit_2_without_a_traceback(tmp_path, capsys
         [
             sys.executable,
             "-m",
-            "gac_jax.convert",
+            "gac_jax.weights.convert",
             "torchvision-resnet",
             str(trunc),
             str(tmp_path / "o"),

@@ -14,17 +14,18 @@ import jax
 import numpy as np
 import pytest
 
-from gac_jax import geometry, parallel
+from gac_jax import geometry
 from gac_jax.builders import depth as depth_builders
-from gac_jax.checkpointing import Checkpoints
+from gac_jax.cli import evaluate as cli
 from gac_jax.config import apply_overrides, load_config
 from gac_jax.data.files import read_depth_png
 from gac_jax.data.sources import KittiDepthSource
-from gac_jax.evaluation import cli
 from gac_jax.evaluation.depth_evaluator import prediction_relpath, to_original_geometry
-from gac_jax.evaluation.depth_workdir import restore_depth_model
+from gac_jax.trained.depth import restore_depth_model
 from gac_jax.trainers import depth
 from gac_jax.trainers.common import create_train_state
+from gac_jax.training import parallel
+from gac_jax.training.checkpointing import Checkpoints
 
 REPO = Path(__file__).resolve().parents[1]
 DRIVE = "2011_09_26_drive_0001_sync"

@@ -18,9 +18,9 @@ import jax
 import numpy as np
 import pytest
 
-from gac_jax.checkpointing import Checkpoints
 from gac_jax.config import apply_overrides, load_config
 from gac_jax.trainers import detect3d
+from gac_jax.training.checkpointing import Checkpoints
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -79,14 +79,17 @@ def test_train_step_compiles_once_and_two_devices_match_one(kitti_object_root, t
         os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
         import jax, numpy as np
         sys.path.insert(0, {str(REPO)!r})
-        from gac_jax import parallel
+        from gac_jax.training import parallel
         from gac_jax.config import apply_overrides, load_config
         from gac_jax.trainers import detect3d as D
         from gac_jax.builders import detect3d as B
         import optax
-        from gac_jax.train_state import TrainState
-        from gac_jax.anchor_priors import load_or_compute_priors, make_detection_constants
-        from gac_jax.anchors import generate_anchors
+        from gac_jax.training.train_state import TrainState
+        from gac_jax.detection.anchor_priors import (
+            load_or_compute_priors,
+            make_detection_constants,
+        )
+        from gac_jax.detection.anchors import generate_anchors
         from gac_jax.data.loader import DetectionArrays, Loader
         from gac_jax.data.sources import open_object_source
         from pathlib import Path

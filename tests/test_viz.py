@@ -6,10 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from gac_jax import geometry, viz
+from gac_jax import geometry
 from gac_jax.data.files import read_image
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.data.sources import KittiDepthSource, KittiObjectSource
+from gac_jax.evaluation import viz
 
 # Largest gap between the projected 3D box and the labelled 2D box on the sample frames is
 # ~3 px for rigid objects and ~10 px for pedestrians (arms and legs stick out of the 3D box).

@@ -56,7 +56,7 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
             val_fraction=s.val_fraction,
             workers=s.get("workers") or None,  # 0 / absent: one per core
         )
-    from gac_jax import multiprocess
+    from gac_jax.training import multiprocess
 
     multiprocess.barrier("dataset_ready")  # the others wait (with a timeout) for process 0
     return root

@@ -71,7 +71,7 @@ def build_model(config: ml_collections.ConfigDict, prior_mean: float) -> DepthUN
 
 
 def loss_options(config: ml_collections.ConfigDict) -> dict:
-    """Keyword arguments of :func:`gac_jax.depth_loss.depth_loss` (plain Python values)."""
+    """Keyword arguments of :func:`gac_jax.depth.depth_loss.depth_loss` (plain Python values)."""
     lc = config.loss
     return {
         "si_lambda": float(lc.si_lambda),
@@ -121,7 +121,7 @@ def init_variables(model: DepthUNet, config, seed: int) -> dict:
     variables = jax.jit(lambda k: model.init(k, images, P, train=False))(jax.random.key(seed))
     variables = {"params": variables["params"], "batch_stats": variables.get("batch_stats", {})}
     if config.model.pretrained_backbone:
-        from gac_jax.pretrained import init_backbone
+        from gac_jax.weights.pretrained import init_backbone
 
         variables = init_backbone(variables, config.model.pretrained_backbone)
     return variables

@@ -1,5 +1,5 @@
 """Config -> detector pieces: anchor layout, transforms, model, loss settings, anchor priors,
-evaluator, initial variables. Shared by the trainer, ``evaluate.py``, ``gac_jax.predict`` and
+evaluator, initial variables. Shared by the trainer, ``evaluate.py``, ``gac_jax.cli.predict`` and
 the exporter, so that nothing but ``train.py`` imports a trainer."""
 
 from __future__ import annotations
@@ -13,14 +13,14 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from gac_jax.anchor_priors import load_or_compute_priors, prior_frame_from_objects
-from gac_jax.anchors import AnchorLayout
 from gac_jax.data import transforms
 from gac_jax.data.loader import Loader
 from gac_jax.data.sources import open_object_source
-from gac_jax.detection_loss import DetectionLossConfig
+from gac_jax.detection.anchor_priors import load_or_compute_priors, prior_frame_from_objects
+from gac_jax.detection.anchors import AnchorLayout
+from gac_jax.detection.detection_loss import DetectionLossConfig
+from gac_jax.detection.inference import PostprocessConfig
 from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
-from gac_jax.inference import PostprocessConfig
 from gac_jax.models.detector import Detector
 
 
@@ -215,7 +215,7 @@ def init_variables(model: Detector, config, seed: int) -> dict:
         {"params": key, "dropout": key}, images, P2
     )
     if config.model.pretrained_backbone:
-        from gac_jax.pretrained import init_backbone
+        from gac_jax.weights.pretrained import init_backbone
 
         variables = init_backbone(variables, config.model.pretrained_backbone)
     return {"params": variables["params"], "batch_stats": variables.get("batch_stats", {})}

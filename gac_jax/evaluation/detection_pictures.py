@@ -5,7 +5,7 @@ predicted 3D wireframes, 2D boxes and scores over the ground truth (green,
 evaluated classes only), and beside it a bird's-eye view of the same boxes as
 tall as the image; plus ``<out_dir>/grid.png`` tiling the frames with captions.
 Written by the trainer at every evaluation (``config.eval.num_pictures``), by
-``evaluate.py --save-images K`` and by ``python -m gac_jax.predict``.
+``evaluate.py --save-images K`` and by ``python -m gac_jax.cli.predict``.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gac_jax import viz
 from gac_jax.data.kitti import KittiObjects, read_label
+from gac_jax.evaluation import viz
 
 BEV_X_RANGE = (-30.0, 30.0)
 BEV_Z_RANGE = (0.0, 70.0)
@@ -26,7 +26,8 @@ GRID_MAX_WIDTH = 960  # pixels of one cell of grid.png
 
 
 def bev_grid_for_height(height: int) -> viz.BevGrid:
-    """A :class:`~gac_jax.viz.BevGrid` (x in [-30, 30] m, z in [0, 70] m) ``height`` pixels tall."""
+    """A :class:`~gac_jax.evaluation.viz.BevGrid` (x in [-30, 30] m, z in [0, 70] m), ``height``
+    pixels tall."""
     ppm = (height - 1) / (BEV_Z_RANGE[1] - BEV_Z_RANGE[0])
     step = 10.0 if ppm >= 3.0 else 20.0
     return viz.BevGrid(BEV_X_RANGE, BEV_Z_RANGE, pixels_per_metre=ppm, grid_step=step)

@@ -20,8 +20,8 @@ import numpy as np
 
 from gac_jax.data.kitti import KittiObjects, read_label, write_label
 from gac_jax.data.loader import Loader, collate
+from gac_jax.detection.inference import PostprocessConfig, make_predict_fn, postprocess
 from gac_jax.evaluation.kitti_object import evaluate_detections
-from gac_jax.inference import PostprocessConfig, make_predict_fn, postprocess
 
 INPUT_KEYS = ("image", "P2", "image_transform", "original_size")
 
@@ -55,7 +55,7 @@ class DetectionEvaluator:
 
     Args:
       model: the Detector.
-      constants: anchors/priors (:class:`gac_jax.anchor_priors.DetectionConstants`).
+      constants: anchors/priors (:class:`gac_jax.detection.anchor_priors.DetectionConstants`).
       source: a left-image object source of the split (labels needed to score).
       transform: the test-time transform chain (crop, resize, pad, normalise).
       class_names: class order of the model.

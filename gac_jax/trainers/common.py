@@ -7,9 +7,9 @@ import jax
 import numpy as np
 import optax
 
-from gac_jax import parallel
-from gac_jax.checkpointing import Checkpoints
-from gac_jax.train_state import TrainState
+from gac_jax.training import parallel
+from gac_jax.training.checkpointing import Checkpoints
+from gac_jax.training.train_state import TrainState
 
 
 class NonFiniteLossError(RuntimeError):

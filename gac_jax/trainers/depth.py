@@ -21,8 +21,8 @@ kept in ``WORKDIR/prior_mean.json`` so a resumed run and ``evaluate.py`` use the
 Multi-process runs (docs/multihost.md) as the detection trainer: each process loads its rows of
 every global batch, process 0 generates the data and computes the prior mean while the others
 wait, evaluation runs on process 0 alone, a lost or hung peer stops the others
-(:class:`~gac_jax.multiprocess.PeerLostError`) and SIGTERM stops all at the same step after a
-checkpoint.
+(:class:`~gac_jax.training.multiprocess.PeerLostError`) and SIGTERM stops all at the same step
+after a checkpoint.
 """
 
 from __future__ import annotations
@@ -36,7 +36,6 @@ import jax
 import ml_collections
 import numpy as np
 
-from gac_jax import multiprocess, parallel, step_watchdog, stopping
 from gac_jax.builders.depth import (
     PRIOR_FILE,
     build_model,
@@ -49,22 +48,14 @@ from gac_jax.builders.depth import (
     train_source,
     train_transform,
 )
-from gac_jax.checkpointing import Checkpoints
 from gac_jax.config import save_config
 from gac_jax.data.files import KittiFormatError, atomic_write
 from gac_jax.data.loader import DepthArrays, Loader
 from gac_jax.data.view_sampling import RandomViewLoader, view_groups
-from gac_jax.depth_loss import depth_loss
+from gac_jax.depth.depth_loss import depth_loss
 from gac_jax.evaluation.depth_evaluator import NetworkPredictor, ground_truth_depth
 from gac_jax.evaluation.depth_metrics import format_depth_table
-from gac_jax.metrics_writer import MetricsWriter, Progress
 from gac_jax.models.depth_unet import mean_log_depth
-from gac_jax.train_state import (
-    TrainState,
-    apply_gradients_guarded,
-    learning_rate_schedule,
-    make_optimizer,
-)
 from gac_jax.trainers.common import (
     NonFiniteLossError,  # noqa: F401 - re-exported: callers catch depth.NonFiniteLossError
     check_finite,
@@ -72,11 +63,20 @@ from gac_jax.trainers.common import (
     host_variables,
     restore_latest,
 )
+from gac_jax.training import multiprocess, parallel, step_watchdog, stopping
+from gac_jax.training.checkpointing import Checkpoints
+from gac_jax.training.metrics_writer import MetricsWriter, Progress
+from gac_jax.training.train_state import (
+    TrainState,
+    apply_gradients_guarded,
+    learning_rate_schedule,
+    make_optimizer,
+)
 
 
 def make_train_loader(config, source, per_process_batch: int, mesh) -> Loader:
     """This process's rows of every global batch (its block of ``mesh``, see
-    :func:`gac_jax.parallel.process_shard`)."""
+    :func:`gac_jax.training.parallel.process_shard`)."""
     d = config.data
     shard_index, num_shards = parallel.process_shard(mesh)
     kwargs = dict(

@@ -16,12 +16,6 @@ from pathlib import Path
 import jax
 import ml_collections
 
-from gac_jax import multiprocess, parallel, step_watchdog, stopping
-from gac_jax.anchor_filter import ground_mask_from_constants
-from gac_jax.anchor_priors import (
-    make_detection_constants,
-)
-from gac_jax.anchors import generate_anchors
 from gac_jax.builders.datasets import prepare_dataset
 from gac_jax.builders.detect3d import (
     anchor_layout,
@@ -34,26 +28,30 @@ from gac_jax.builders.detect3d import (
     sign_axis,
     train_transform,
 )
-from gac_jax.checkpointing import Checkpoints
 from gac_jax.config import save_config
 from gac_jax.data.loader import DetectionArrays, Loader
 from gac_jax.data.sources import open_object_source
-from gac_jax.detection_loss import detection_loss
+from gac_jax.detection.anchor_filter import ground_mask_from_constants
+from gac_jax.detection.anchor_priors import make_detection_constants
+from gac_jax.detection.anchors import generate_anchors
+from gac_jax.detection.detection_loss import detection_loss
 from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.kitti_object import format_table
-from gac_jax.metrics_writer import MetricsWriter, Progress
-from gac_jax.train_state import (
-    TrainState,
-    apply_gradients_guarded,
-    learning_rate_schedule,
-    make_optimizer,
-)
 from gac_jax.trainers.common import (
     NonFiniteLossError,  # noqa: F401 - re-exported: callers catch detect3d.NonFiniteLossError
     check_finite,
     create_train_state,
     host_variables,
     restore_latest,
+)
+from gac_jax.training import multiprocess, parallel, step_watchdog, stopping
+from gac_jax.training.checkpointing import Checkpoints
+from gac_jax.training.metrics_writer import MetricsWriter, Progress
+from gac_jax.training.train_state import (
+    TrainState,
+    apply_gradients_guarded,
+    learning_rate_schedule,
+    make_optimizer,
 )
 
 

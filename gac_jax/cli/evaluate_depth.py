@@ -1,0 +1,146 @@
+"""``evaluate.py``'s depth model mode: a trained depth workdir, or a no-learning baseline.
+
+    python evaluate.py --task depth --workdir W [--data DIR] [--split val] [--step N]
+                       [--out DIR] [--json OUT]
+    python evaluate.py --task depth --baseline {ground-plane,row-mean} (--data DIR | --workdir W)
+                       [--split val] [--out DIR] [--json OUT]
+
+``--data`` is a KITTI-depth root (frames of ``data_depth_annotated/<split>``) or a
+``depth_selection`` folder (``val_selection_cropped``, or the anonymous test set: PNGs are
+written, nothing is scored). Without it, the workdir's own evaluation data is used. The
+model mode writes 16-bit PNGs, pictures and ``metrics.json`` to ``--out`` (default
+``W/eval/step_N_<split>``); the baseline writes PNGs only when ``--out`` is given.
+Baselines: ``ground-plane`` (the per-row ground depth of a camera 1.65 m above a flat
+road) and ``row-mean`` (each row's mean log-depth over the ``train`` split of the same
+data, :mod:`gac_jax.evaluation.depth_baselines`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from gac_jax.data import transforms
+from gac_jax.data.files import KittiFormatError, atomic_write
+from gac_jax.deploy.runtime_choice import resolve_runtime, run_suffix, runtime_predictor
+from gac_jax.evaluation.depth_baselines import RowMeanPredictor, fit_row_log_depth
+from gac_jax.evaluation.depth_evaluator import (
+    BASELINE_CAMERA_HEIGHT,
+    BASELINE_MAX_DEPTH,
+    DepthEvaluator,
+    GroundPlanePredictor,
+)
+from gac_jax.evaluation.depth_metrics import format_depth_table
+from gac_jax.trained.depth import restore_depth_model
+from gac_jax.trained.run_config import load_workdir_config
+
+BASELINES = ("ground-plane", "row-mean")
+
+
+def _data_source(config, data: str | None, split: str | None):
+    from gac_jax.builders import depth as builders
+
+    if data is not None:
+        if not Path(data).exists():
+            raise KittiFormatError(data, "data folder not found")
+        cameras = tuple(config.data.val_cameras) if config is not None else (2, 3)
+        return builders.open_eval_data(Path(data), split or "val", cameras)
+    return builders.eval_source(config, builders.depth_root(config.data), split)
+
+
+def _tag(source, split: str | None) -> str:
+    """Names an evaluation: the selection folder's name, or the split."""
+    items = getattr(source, "items", None)
+    if items:
+        return items[0].image.parent.parent.name
+    return split or getattr(source, "split", "val")
+
+
+def evaluate_workdir(
+    workdir: str | Path,
+    data: str | None = None,
+    split: str | None = None,
+    step: int | None = None,
+    out: str | Path | None = None,
+    runtime: str = "jax",
+    precision: str = "f32",
+    export_dir: str | Path | None = None,
+) -> dict:
+    """Runs a trained depth model over a split; returns the evaluator's result dict.
+
+    ``runtime`` / ``precision``: see :func:`runtime_predictor`; a non-default pair adds
+    ``_<runtime>_<precision>`` to the default output folder.
+    """
+    from gac_jax.builders import depth as builders
+
+    config, model, variables, step = restore_depth_model(workdir, step)
+    source = _data_source(config, data, split)
+    name = f"step_{step}_{_tag(source, split)}{run_suffix(runtime, precision)}"
+    out = Path(out) if out else Path(workdir) / "eval" / name
+    evaluator = builders.make_evaluator(config, source)
+    predictor = runtime_predictor(
+        config, model, variables, step, workdir, runtime, precision, export_dir
+    )
+    result = evaluator.evaluate(predictor, out / "depth", out / "pictures")
+    result["step"] = step
+    result["runtime"] = {"runtime": runtime, "precision": precision}
+    with atomic_write(out / "metrics.json") as f:
+        json.dump(result, f, indent=2)
+    print(
+        f"{result['num_frames']} frames, step {step} of {workdir}, predictions in {out / 'depth'}"
+    )
+    return result
+
+
+def evaluate_baseline(
+    name: str = "ground-plane",
+    data: str | None = None,
+    split: str | None = None,
+    workdir: str | Path | None = None,
+    out: str | Path | None = None,
+) -> dict:
+    """Scores a no-learning baseline (:data:`BASELINES`) on a split's original-size GT."""
+    if name not in BASELINES:
+        raise ValueError(f"unknown baseline {name!r} (known: {', '.join(BASELINES)})")
+    if data is None and workdir is None:
+        raise ValueError("the baseline needs --data or --workdir (whose data it then uses)")
+    config = load_workdir_config(workdir) if workdir is not None else None
+    source = _data_source(config, data, split)
+    # The baseline reads only P2 and the geometry: a small fixed view keeps batches cheap.
+    view = transforms.Compose([transforms.Resize(32, 128)])
+    evaluator = DepthEvaluator(source, view, batch_size=8, num_pictures=0)
+    if name == "ground-plane":
+        predictor = GroundPlanePredictor(BASELINE_CAMERA_HEIGHT, BASELINE_MAX_DEPTH)
+        described = {"camera_height": BASELINE_CAMERA_HEIGHT, "max_depth": BASELINE_MAX_DEPTH}
+    else:
+        fit_on = _data_source(config, data, "train")
+        predictor = RowMeanPredictor(fit_row_log_depth(fit_on))
+        described = {"fitted_on": "train", "fitted_frames": len(fit_on)}
+    result = evaluator.evaluate(predictor, Path(out) if out else None, resume=False)
+    result["baseline"] = {"name": name, **described}
+    print(f"{result['num_frames']} frames, {name} baseline")
+    return result
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Dispatch of ``evaluate.py --task depth --workdir/--baseline``; prints the table."""
+    if args.baseline:
+        result = evaluate_baseline(args.baseline, args.data, args.split, args.workdir, args.out)
+    else:
+        export = getattr(args, "export", None)
+        runtime, precision = resolve_runtime(
+            getattr(args, "runtime", None), getattr(args, "precision", None)
+        )
+        if export and runtime == "jax":
+            raise KittiFormatError(
+                export, "--export only applies with --runtime onnxruntime|openvino"
+            )
+        result = evaluate_workdir(
+            args.workdir, args.data, args.split, args.step, args.out, runtime, precision, export
+        )
+    if result["metrics"]:
+        print(format_depth_table(result["metrics"], result["num_scored"]), end="")
+    else:
+        print("no ground truth: predictions written, nothing scored")
+    return result

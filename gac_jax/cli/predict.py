@@ -1,0 +1,269 @@
+"""Run a trained detector on any KITTI-format images: ``python -m gac_jax.cli.predict``.
+
+    python -m gac_jax.cli.predict --workdir W IMAGE_OR_DIR [--calib FILE_OR_DIR] [--out DIR]
+        [--no-images] [--step N | --checkpoint DIR --config C] [--camera 2|3]
+        [--score-threshold S] [--batch-size B] [--threads T]
+        [--runtime jax|onnxruntime|openvino] [--precision f32|bf16] [--export DIR]
+
+``IMAGE_OR_DIR`` is one image (PNG/JPEG) or a folder of them. Each image needs
+its KITTI calibration file (``P2: ...`` line; ``--camera 3`` uses ``P3``):
+``--calib FILE`` serves every image, ``--calib DIR`` holds ``<stem>.txt`` per
+image; without ``--calib`` the KITTI layout is assumed (``<images>/../calib/<stem>.txt``,
+else ``<stem>.txt`` beside the image). Images of any size go through the model's
+test transform (crop the top rows, resize to the input height, crop/pad the
+width); results are in original-image pixels.
+
+Writes ``OUT/data/<stem>.txt`` (KITTI result lines with scores) and, unless
+``--no-images``, ``OUT/pictures/<stem>.png`` (3D/2D boxes and a bird's-eye view)
+plus ``OUT/pictures/grid.png``. ``OUT`` defaults to ``W/predict/<input name>``.
+``--runtime onnxruntime|openvino`` runs the exported network (:mod:`gac_jax.deploy.runtimes`; the
+export is written to ``W/export/<weights>`` when absent) with the same decoding and
+post-processing. Errors end with ``error: <file>: <problem>`` and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+EXIT_INVALID_INPUT = 2
+
+
+def find_images(path: str | os.PathLike) -> list[Path]:
+    """The image ``path`` or the images (PNG/JPEG) directly inside folder ``path``, sorted."""
+    from gac_jax.data.files import KittiFormatError
+
+    path = Path(path)
+    if path.is_file():
+        return [path]
+    if not path.is_dir():
+        raise KittiFormatError(path, "image or folder not found")
+    images = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not images:
+        raise KittiFormatError(path, f"no images ({', '.join(IMAGE_SUFFIXES)}) in this folder")
+    stems = [p.stem for p in images]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise KittiFormatError(path, f"several images share the name {dup[0]!r} (e.g. .png/.jpg)")
+    return images
+
+
+def find_calibrations(images: Sequence[Path], calib: str | os.PathLike | None) -> list[Path]:
+    """Calibration file of every image (see the module docstring for the search order)."""
+    from gac_jax.data.files import KittiFormatError
+
+    hint = (
+        "pass --calib FILE (one calibration for all images) or --calib DIR "
+        "(a <image stem>.txt per image)"
+    )
+    if calib is not None:
+        calib = Path(calib)
+        if calib.is_file():
+            return [calib] * len(images)
+        if not calib.is_dir():
+            raise KittiFormatError(calib, "calibration file or folder not found")
+        found = []
+        for image in images:
+            path = calib / f"{image.stem}.txt"
+            if not path.is_file():
+                raise KittiFormatError(path, f"calibration of {image} not found; {hint}")
+            found.append(path)
+        return found
+    found = []
+    for image in images:
+        candidates = [
+            image.parent.parent / "calib" / f"{image.stem}.txt",
+            image.with_suffix(".txt"),
+        ]
+        path = next((c for c in candidates if c.is_file()), None)
+        if path is None:
+            looked = " and ".join(str(c) for c in candidates)
+            raise KittiFormatError(image, f"no calibration found (looked for {looked}); {hint}")
+        found.append(path)
+    return found
+
+
+class ImageSource:
+    """Random-access source of unlabelled images with their calibration (``source[i]`` samples).
+
+    Args:
+      images, calibs: paths, one calibration per image.
+      camera: 2 (``P2``) or 3 (``P3``) of the calibration file.
+      input_geometry: ``(crop_top, height, width)`` of the model's test transform: images
+        must be taller than ``crop_top``; those wider than ``width`` after the resize to
+        ``height`` are cut on the right by the transform and listed in :attr:`cut_off`.
+    """
+
+    def __init__(
+        self,
+        images: Sequence[Path],
+        calibs: Sequence[Path],
+        camera: int = 2,
+        input_geometry: tuple[int, int, int] | None = None,
+    ):
+        self.images = [Path(p) for p in images]
+        self.calibs = [Path(p) for p in calibs]
+        self.camera = camera
+        self.input_geometry = input_geometry
+        self.frame_ids = [p.stem for p in self.images]
+        self.cut_off: set[str] = set()
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def __getitem__(self, i: int) -> dict:
+        from gac_jax.data.files import KittiFormatError, read_image
+        from gac_jax.data.kitti import read_calib
+        from gac_jax.data.sources import new_sample
+
+        calib = read_calib(self.calibs[i])
+        P = calib.P2 if self.camera == 2 else calib.P3
+        if P is None:
+            raise KittiFormatError(self.calibs[i], f"calibration has no P{self.camera}")
+        image = read_image(self.images[i])
+        if self.input_geometry is not None:
+            crop_top, height, width = self.input_geometry
+            h, w = image.shape[:2]
+            if h <= crop_top:
+                raise KittiFormatError(
+                    self.images[i], f"image is {h} rows tall; the model crops the top {crop_top}"
+                )
+            if round(w * height / (h - crop_top)) > width:
+                self.cut_off.add(self.frame_ids[i])
+        return new_sample(self.frame_ids[i], self.camera, image, P)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m gac_jax.cli.predict",
+        description="Run a trained GAC detector on KITTI-format images; write KITTI result files "
+        "and pictures.",
+    )
+    parser.add_argument("input", metavar="IMAGE_OR_DIR", help="an image or a folder of images")
+    parser.add_argument("--workdir", required=True, help="training workdir (or priors + config)")
+    parser.add_argument("--calib", metavar="FILE_OR_DIR", help="calibration file or folder")
+    parser.add_argument("--out", metavar="DIR", help="output folder (default: W/predict/<input>)")
+    parser.add_argument("--no-images", action="store_true", help="write result files only")
+    parser.add_argument("--step", type=int, help="checkpoint step (default: the latest)")
+    parser.add_argument("--checkpoint", metavar="DIR", help="converted weights instead")
+    parser.add_argument("--config", help="config file[:arg] instead of W/config.json")
+    parser.add_argument("--camera", type=int, choices=(2, 3), default=2, help="P2 or P3")
+    parser.add_argument("--score-threshold", type=float, help="default: the config's")
+    parser.add_argument("--batch-size", type=int, default=1, help="images per model call")
+    parser.add_argument("--threads", type=int, help="CPU threads of XLA (default: all usable)")
+    parser.add_argument(
+        "--runtime",
+        choices=("jax", "onnxruntime", "openvino"),
+        default="jax",
+        help="what runs the network (default jax; the others export it to W/export/ if absent)",
+    )
+    parser.add_argument("--precision", choices=("f32", "bf16"), default="f32")
+    parser.add_argument(
+        "--export", metavar="DIR", help="export folder for --runtime (default: W/export/<weights>)"
+    )
+    return parser
+
+
+def predict(args: argparse.Namespace, threads: int) -> Path:
+    """Runs the command (``threads``: XLA CPU threads in effect); returns the output folder."""
+    import jax.numpy as jnp
+
+    from gac_jax.data.files import KittiFormatError
+    from gac_jax.deploy.runtime_choice import use_runtime
+    from gac_jax.evaluation.detection_pictures import save_pictures
+    from gac_jax.trained.detector import evaluator_for, load_detector
+    from gac_jax.trained.run_config import load_run_config
+
+    workdir = Path(args.workdir)
+    if not workdir.is_dir():
+        raise KittiFormatError(workdir, "workdir not found")
+    images = find_images(args.input)
+    calibs = find_calibrations(images, args.calib)
+    overrides = []
+    if args.score_threshold is not None:
+        overrides.append(f"eval.score_threshold={args.score_threshold}")
+    config = load_run_config(workdir, args.config, overrides)
+    dtype = jnp.bfloat16 if (args.runtime, args.precision) == ("jax", "bf16") else jnp.float32
+    detector = load_detector(
+        workdir, config, step=args.step, checkpoint=args.checkpoint, dtype=dtype
+    )
+    d = config.data
+    source = ImageSource(images, calibs, args.camera, (d.crop_top, d.height, d.width))
+    evaluator = evaluator_for(detector, source, args.batch_size)
+    name = Path(args.input).resolve()
+    out = Path(args.out) if args.out else workdir / "predict" / (name.stem or "input")
+    print(f"{detector.weights}: {len(images)} images -> {out}", flush=True)
+    if args.runtime == "jax":
+        compile_s = evaluator.compile(detector.variables, (d.height, d.width))
+    else:
+        compile_s = use_runtime(
+            evaluator,
+            detector,
+            workdir,
+            args.runtime,
+            args.precision,
+            export_dir=args.export,
+            threads=threads,
+        )
+    detections, timings = evaluator.predict_split(detector.variables, out / "data", resume=False)
+    n = int(timings["num_frames"])
+    total = timings["model_s"] + timings["postprocess_s"] + timings["io_s"]
+    print(
+        f"{n} images, {sum(len(d) for d in detections.values())} detections; "
+        f"{n / total:.2f} images/s on {threads} CPU threads, {args.runtime} {args.precision} "
+        f"(model {timings['model_s']:.2f} s, "
+        f"post-processing {timings['postprocess_s']:.2f} s, I/O {timings['io_s']:.2f} s; "
+        f"compile {compile_s:.1f} s)"
+    )
+    if source.cut_off:
+        cut = sorted(source.cut_off)
+        print(
+            f"note: {len(cut)} images are wider than the model input ({d.width} px at height "
+            f"{d.height} after cropping {d.crop_top} rows): their right part was not seen "
+            f"({', '.join(cut[:5])}{' ...' if len(cut) > 5 else ''})"
+        )
+    if not args.no_images:
+        save_pictures(source, detections, out / "pictures", None)
+        print(f"pictures in {out / 'pictures'}")
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from gac_jax.cpu_backend import apply_default_xla_flags
+
+    apply_default_xla_flags()  # before JAX starts its backend
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.checkpoint and args.step is not None:
+        parser.error("--step selects a checkpoint of the workdir; it cannot go with --checkpoint")
+    if args.batch_size < 1:
+        parser.error("--batch-size must be >= 1")
+    if args.export and args.runtime == "jax":
+        parser.error("--export only applies with --runtime onnxruntime|openvino")
+    from gac_jax.cli.model_mode import limit_cpu_threads
+    from gac_jax.data.files import KittiFormatError
+    from gac_jax.deploy.runtime_choice import resolve_runtime
+
+    resolve_runtime(args.runtime, args.precision)
+
+    try:
+        threads = limit_cpu_threads(args.threads)
+    except ValueError as e:
+        parser.error(str(e))
+    try:
+        predict(args, threads)
+    except KittiFormatError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_INVALID_INPUT
+    except OSError as e:
+        print(f"error: {e.filename or ''}: {e.strerror}", file=sys.stderr)
+        return EXIT_INVALID_INPUT
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,80 @@
+"""``python -m gac_jax.deploy.export``: a trained network -> ``DIR/model.onnx`` + ``export.json``.
+
+    python -m gac_jax.deploy.export --task detect3d|depth (--workdir W [--step N] |
+        --checkpoint C --config F) --out DIR [--opset K] [key.sub=value ...]
+
+The graph is emitted from the Flax variables and the config (:mod:`gac_jax.deploy.export.networks`):
+NCHW, BatchNorm folded, inputs ``images`` (B,H,W,3) float32 and ``P2`` (B,3,4) with a dynamic
+batch. ``--checkpoint`` (converted weights, ``python -m gac_jax.weights.convert``) is for the
+detector. Errors end with ``error: <file>: <problem>`` and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from gac_jax.deploy.export.artifact import DEFAULT_OPSET, MODEL_FILE
+
+EXIT_INVALID_INPUT = 2
+MIN_OPSET = 13  # Resize with align_corners and sizes, Clip/Pad/Slice with tensor inputs
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m gac_jax.deploy.export",
+        description="Export a trained GAC detector or depth network to ONNX (+ export.json).",
+    )
+    parser.add_argument("--task", required=True, choices=("detect3d", "depth"))
+    parser.add_argument("--workdir", help="training workdir (config.json, checkpoints/)")
+    parser.add_argument("--step", type=int, help="checkpoint step (default: the latest)")
+    parser.add_argument("--checkpoint", metavar="DIR", help="converted detector weights")
+    parser.add_argument("--config", help="config file[:arg] (needed with --checkpoint)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--opset", type=int, default=DEFAULT_OPSET, help="ONNX opset")
+    parser.add_argument("overrides", nargs="*", help="config overrides key.sub=value")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if bool(args.workdir) == bool(args.checkpoint):
+        parser.error("give exactly one of --workdir W or --checkpoint C --config F")
+    if args.checkpoint and not args.config:
+        parser.error("--checkpoint (converted weights) needs --config")
+    if args.checkpoint and args.step is not None:
+        parser.error("--step selects a checkpoint of the workdir; it cannot go with --checkpoint")
+    if args.opset < MIN_OPSET:
+        parser.error(f"--opset must be >= {MIN_OPSET}")
+    from gac_jax.data.files import KittiFormatError
+    from gac_jax.deploy.export.networks import ExportError
+    from gac_jax.deploy.export.sources import export_source, load_source
+
+    try:
+        source = load_source(
+            args.task,
+            workdir=args.workdir,
+            step=args.step,
+            checkpoint=args.checkpoint,
+            config_spec=args.config,
+            overrides=args.overrides,
+        )
+        meta = export_source(source, args.out, args.opset)
+    except ExportError as e:
+        print(f"error: {args.workdir or args.checkpoint}: {e}", file=sys.stderr)
+        return EXIT_INVALID_INPUT
+    except KittiFormatError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_INVALID_INPUT
+    h, w = source.image_size
+    print(
+        f"{args.task} {source.weights} -> {args.out}/{MODEL_FILE} ({meta['size_bytes'] / 1e6:.1f} "
+        f"MB, opset {args.opset}, input {h}x{w}, sha256 {meta['sha256'][:12]})"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,376 @@
+"""The GAC detector and depth U-Net as ONNX graphs, emitted from Flax variables + the module.
+
+Nothing here traces JAX: each layer of :mod:`gac_jax.models` is re-stated with the ONNX ops of
+:class:`~gac_jax.deploy.export.graph.GraphBuilder` in NCHW, reading the weights by their Flax names
+and the hyper-parameters from the (configured) Flax module, so the export does not depend on
+how JAX lowers the model. Inference mode only: BatchNorm uses its running statistics (folded
+into the convolutions) and dropout is the identity.
+
+Graph inputs and outputs (batch ``B`` is a dynamic dimension):
+
+* detector: ``images`` (B,H,W,3) float32 (normalised RGB, as the Flax model takes them),
+  ``P2`` (B,3,4) -> ``cls_logits`` (B,N,K), ``sign_logits`` (B,N), ``reg`` (B,N,12);
+* depth U-Net: ``images`` (B,H,W,3), ``P2`` (B,3,4) -> ``log_depth`` (B,H,W) (the
+  ``scale_1`` head) and ``depth`` (B,H,W) metres.
+
+The projection ``P2`` stays a live input: the GAC's sampling offsets and disparity prior are
+computed from it inside the graph, exactly as :mod:`gac_jax.models.ground_aware_conv` does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+
+from gac_jax.deploy.export.graph import GraphBuilder
+from gac_jax.models.depth_unet import DECODER_STAGES, REFERENCE_GAC_STRIDE, DepthUNet
+from gac_jax.models.detection_head import NUM_REGRESSION
+from gac_jax.models.detector import FEATURE_LAYER, FEATURE_STRIDE, Detector
+from gac_jax.models.resnet import BOTTLENECK_EXPANSION, RESNET_SPECS, layer_output_size
+
+
+class ExportError(ValueError):
+    """The model (or a variant of it) cannot be exported."""
+
+
+class _Weights:
+    """Read access to ``{'params', 'batch_stats'}`` by Flax module path."""
+
+    def __init__(self, variables: dict):
+        self.params = variables["params"]
+        self.stats = variables.get("batch_stats", {})
+
+    @staticmethod
+    def _walk(tree, path: tuple[str, ...]):
+        for key in path:
+            tree = tree[key]
+        return tree
+
+    def conv(self, *path: str) -> dict:
+        return {k: np.asarray(v) for k, v in self._walk(self.params, path).items()}
+
+    def bn(self, *path: str) -> dict:
+        p, s = self._walk(self.params, path), self._walk(self.stats, path)
+        return {"scale": p["scale"], "bias": p["bias"], "mean": s["mean"], "var": s["var"]}
+
+    def value(self, *path: str) -> np.ndarray:
+        return np.asarray(self._walk(self.params, path))
+
+
+# ----------------------------------------------------------------------------- ResNet
+
+
+def _resnet(
+    g: GraphBuilder, w: _Weights, x: str, depth: int, width: int, stages: int, root: str
+) -> dict[str, str]:
+    """torchvision ResNet trunk (:class:`gac_jax.models.resnet.ResNet`) -> stage outputs."""
+    kind, blocks = RESNET_SPECS[depth]
+    x = g.conv(x, w.conv(root, "conv1"), w.bn(root, "bn1"), stride=2, relu=True)
+    x = g.max_pool(x)
+    outputs = {}
+    channels = width
+    for stage in range(stages):
+        features = width * 2**stage
+        for b in range(blocks[stage]):
+            stride = 2 if (stage > 0 and b == 0) else 1
+            p = f"layer{stage + 1}_{b}"
+            if kind == "bottleneck":
+                out_features = features * BOTTLENECK_EXPANSION
+                y = g.conv(x, w.conv(root, p, "conv1"), w.bn(root, p, "bn1"), relu=True)
+                y = g.conv(y, w.conv(root, p, "conv2"), w.bn(root, p, "bn2"), stride=stride)
+                y = g.op("Relu", [y])
+                y = g.conv(y, w.conv(root, p, "conv3"), w.bn(root, p, "bn3"))
+            else:
+                out_features = features
+                y = g.conv(x, w.conv(root, p, "conv1"), w.bn(root, p, "bn1"), stride=stride)
+                y = g.op("Relu", [y])
+                y = g.conv(y, w.conv(root, p, "conv2"), w.bn(root, p, "bn2"))
+            shortcut = x
+            if stride != 1 or channels != out_features:
+                shortcut = g.conv(
+                    x,
+                    w.conv(root, p, "downsample_0"),
+                    w.bn(root, p, "downsample_1"),
+                    stride=stride,
+                    padding=0,
+                )
+            x = g.op("Relu", [g.op("Add", [y, shortcut])])
+            channels = out_features
+        outputs[f"layer{stage + 1}"] = x
+    return outputs
+
+
+# ----------------------------------------------------------------------------- GAC
+
+
+def _projection_rows(g: GraphBuilder, P2: str) -> dict[str, str]:
+    """``fy, cy, ty`` (each (B,1)) of the input projection (rows 0-1 not yet divided)."""
+    flat = g.reshape(P2, [-1, 12])
+    return {
+        "fy": g.gather_rows(flat, np.array([5]), axis=1),
+        "cy": g.gather_rows(flat, np.array([6]), axis=1),
+        "ty": g.gather_rows(flat, np.array([7]), axis=1),
+    }
+
+
+def _feature_rows(
+    g: GraphBuilder, rows: dict[str, str], divisors: tuple[float, ...], keep_ty: bool
+) -> tuple[str, str, str]:
+    """``fy, cy, ty`` of a feature map: rows 0-1 times ``1/d`` for each divisor in turn (as
+    :func:`~gac_jax.models.ground_aware_conv.feature_projection` does), ``ty = 0`` if not
+    ``keep_ty`` (the reference depth intrinsics)."""
+    out = []
+    for key in ("fy", "cy", "ty"):
+        t = rows[key]
+        if key == "ty" and not keep_ty:
+            t = g.op("Mul", [t, g.const(0.0)])
+        for d in divisors:
+            t = g.op("Mul", [t, g.const(np.float32(1.0 / d))])
+        out.append(t)
+    return out[0], out[1], out[2]
+
+
+def _base_offset_coefficient(formula: str, h: float, el: float) -> float:
+    """``base_offset = relu(coef * (v - cy))`` for each formula of ``base_offset``."""
+    if formula == "paper":
+        return h / (2.0 * el - h)
+    if formula == "reference":
+        return h / (2.0 * (el - h / 2.0))
+    if formula == "reference_v1":
+        return h / 2.0 * (el - h / 2.0)
+    raise ExportError(f"offset_formula {formula!r} is not exportable")
+
+
+def _ground_aware_conv(
+    g: GraphBuilder,
+    w: _Weights,
+    path: tuple[str, ...],
+    x: str,
+    size: tuple[int, int],
+    proj: tuple[str, str, str],
+    geometry: dict,
+) -> str:
+    """:class:`~gac_jax.models.ground_aware_conv.GroundAwareConv` on NCHW ``x`` (B,C,H,W)."""
+    H, W = size
+    fy, cy, ty = proj
+    v = g.const(np.arange(H, dtype=np.float32)[None, :], "rows")  # (1,H)
+    dv = g.op("Sub", [v, cy])  # (B,H)
+    # disparity prior relu(fy * B * (v - cy) / (|fy * EL + Ty| + 1e-10))
+    num = g.op("Mul", [g.op("Mul", [fy, g.const(np.float32(geometry["baseline"]))]), dv])
+    den = g.op("Mul", [fy, g.const(np.float32(geometry["camera_height"]))])
+    den = g.op("Add", [g.op("Abs", [g.op("Add", [den, ty])]), g.const(np.float32(1e-10))])
+    disp = g.op("Relu", [g.op("Div", [num, den])])
+    disp_map = g.op(
+        "Expand", [g.reshape(disp, [-1, 1, H, 1]), g.const([1, 1, H, W], "sh", np.int64)]
+    )
+    # base offset (rows) and the learned residual d = offset_scale * tanh(offset_conv(x))
+    coef = _base_offset_coefficient(
+        geometry["offset_formula"], geometry["object_height"], geometry["camera_height"]
+    )
+    base = g.op("Relu", [g.op("Mul", [dv, g.const(np.float32(coef))])])
+    base = g.reshape(base, [-1, 1, H, 1])
+    d = g.op("Tanh", [g.conv(x, w.conv(*path, "offset_conv"))])  # (B,1,H,W)
+    d = g.op("Mul", [d, g.const(np.float32(geometry["offset_scale"]))])
+    offset = g.op("Add", [g.op("Mul", [base, g.const(np.float32(1.0 / (H / 2.0)))]), d])
+    offset = g.op("Mul", [offset, g.const(np.float32((H - 1) / 2.0))])
+    rows = g.op("Add", [g.const(np.arange(H, dtype=np.float32).reshape(1, 1, H, 1)), offset])
+    # vertical linear interpolation of [disp ‖ x] with border clamping
+    feats = g.op("Concat", [disp_map, x], axis=1)
+    rows = g.op("Clip", [rows, g.const(np.float32(0.0)), g.const(np.float32(H - 1.0))])
+    r0 = g.op(
+        "Clip",
+        [g.op("Floor", [rows]), g.const(np.float32(0.0)), g.const(np.float32(max(H - 2, 0)))],
+    )
+    frac = g.op("Sub", [rows, r0])
+    i0 = g.op("Cast", [r0], to=onnx.TensorProto.INT64)
+    i1 = g.op(
+        "Min", [g.op("Add", [i0, g.const(1, "one", np.int64)]), g.const(H - 1, "hm1", np.int64)]
+    )
+    shape = g.op("Shape", [feats])
+    f0 = g.op("GatherElements", [feats, g.op("Expand", [i0, shape])], axis=2)
+    f1 = g.op("GatherElements", [feats, g.op("Expand", [i1, shape])], axis=2)
+    one_minus = g.op("Sub", [g.const(np.float32(1.0)), frac])
+    sampled = g.op("Add", [g.op("Mul", [one_minus, f0]), g.op("Mul", [frac, f1])])
+    alpha = float(w.value(*path, "alpha")[0])
+    extracted = g.conv(sampled, w.conv(*path, "extract"), scale=alpha)  # alpha folded in
+    return g.op("Relu", [g.op("Add", [x, extracted])])
+
+
+def _geometry(module, offset_scale: float = 0.1) -> dict:
+    return {
+        "baseline": module.baseline,
+        "camera_height": module.camera_height,
+        "object_height": module.object_height,
+        "offset_formula": module.offset_formula,
+        "offset_scale": offset_scale,
+    }
+
+
+# ----------------------------------------------------------------------------- detector
+
+
+def detector_graph(
+    model: Detector, variables: dict, image_size: tuple[int, int], opset: int
+) -> onnx.ModelProto:
+    """ONNX graph of a :class:`~gac_jax.models.detector.Detector` (see the module docstring)."""
+    H, W = image_size
+    Hf, Wf = layer_output_size(H, FEATURE_LAYER), layer_output_size(W, FEATURE_LAYER)
+    A, K = model.num_anchors, model.num_classes
+    N = Hf * Wf * A
+    g, w = GraphBuilder("gac_detector"), _Weights(variables)
+    images = g.add_input("images", ["batch", H, W, 3])
+    P2 = g.add_input("P2", ["batch", 3, 4])
+    x = g.op("Transpose", [images], perm=[0, 3, 1, 2])
+    x = _resnet(g, w, x, model.depth, model.width, FEATURE_LAYER, "backbone")["layer3"]
+
+    c = x
+    for i in (1, 2):
+        c = g.conv(c, w.conv("head", f"cls_conv{i}"), relu=True)
+    c = g.conv(c, w.conv("head", "cls_out"))
+    c = g.reshape(g.op("Transpose", [c], perm=[0, 2, 3, 1]), [-1, N, K + 1])
+    g.add_output(g.slice(c, 0, K, axis=2), "cls_logits", ["batch", N, K])
+    sign = g.op("Gather", [c, g.const(np.int64(K), "k", np.int64)], axis=2)
+    g.add_output(sign, "sign_logits", ["batch", N])
+
+    block = model.regression_block
+    if block == "gac":
+        proj = _feature_rows(g, _projection_rows(g, P2), (FEATURE_STRIDE,), keep_ty=True)
+        geometry = _geometry(model, model.offset_scale)
+        r = _ground_aware_conv(g, w, ("head", "gac"), x, (Hf, Wf), proj, geometry)
+    elif block == "conv":
+        r = g.conv(x, w.conv("head", "plain_conv"), relu=True)
+    elif block == "disparity_conv":
+        fy, cy, ty = _feature_rows(g, _projection_rows(g, P2), (FEATURE_STRIDE,), keep_ty=True)
+        v = g.const(np.arange(Hf, dtype=np.float32)[None, :], "rows")
+        num = g.op(
+            "Mul", [g.op("Mul", [fy, g.const(np.float32(model.baseline))]), g.op("Sub", [v, cy])]
+        )
+        den = g.op("Mul", [fy, g.const(np.float32(model.camera_height))])
+        den = g.op("Add", [g.op("Abs", [g.op("Add", [den, ty])]), g.const(np.float32(1e-10))])
+        disp = g.reshape(g.op("Relu", [g.op("Div", [num, den])]), [-1, 1, Hf, 1])
+        disp = g.op("Expand", [disp, g.const([1, 1, Hf, Wf], "sh", np.int64)])
+        r = g.conv(g.op("Concat", [disp, x], axis=1), w.conv("head", "disparity_conv"), relu=True)
+    else:
+        raise ExportError(
+            f"regression_block={block!r} (e.g. the Table 3 'deformable' row) cannot be exported: "
+            "only the gac, conv and disparity_conv blocks are; run this model with --runtime jax"
+        )
+    for i in (1, 2):
+        r = g.conv(r, w.conv("head", f"reg_conv{i}"), w.bn("head", f"reg_bn{i}"), relu=True)
+    r = g.conv(r, w.conv("head", "reg_out"))
+    r = g.reshape(g.op("Transpose", [r], perm=[0, 2, 3, 1]), [-1, N, NUM_REGRESSION])
+    g.add_output(r, "reg", ["batch", N, NUM_REGRESSION])
+    return g.model(opset, "GAC monocular 3D detector (gac_jax)")
+
+
+# ----------------------------------------------------------------------------- depth U-Net
+
+
+def _pad_or_crop(g: GraphBuilder, x: str, have: tuple[int, int], want: tuple[int, int]) -> str:
+    """:func:`~gac_jax.models.depth_unet.pad_or_crop_to` on NCHW: zero-pad / crop H and W."""
+    begins, ends = [], []
+    for axis, (n, m) in enumerate(zip(have, want, strict=True), start=2):
+        diff = m - n
+        lo, hi = diff // 2, diff - diff // 2
+        if lo < 0 or hi < 0:
+            x = g.slice(x, max(-lo, 0), n - max(-hi, 0), axis)
+        begins.append(max(lo, 0))
+        ends.append(max(hi, 0))
+    if any(begins) or any(ends):
+        pads = g.const([0, 0, *begins, 0, 0, *ends], "pads", np.int64)
+        x = g.op("Pad", [x, pads], mode="constant")
+    return x
+
+
+def _resize(g: GraphBuilder, x: str, size: tuple[int, int]) -> str:
+    """Bilinear resize with ``align_corners=True`` to ``size`` (batch and channels kept)."""
+    lead = g.slice(g.op("Shape", [x]), 0, 2, axis=0)
+    sizes = g.op("Concat", [lead, g.const(list(size), "hw", np.int64)], axis=0)
+    return g.op(
+        "Resize",
+        [x, "", "", sizes],
+        mode="linear",
+        coordinate_transformation_mode="align_corners",
+    )
+
+
+def _resized_single_channel_conv(
+    g: GraphBuilder, x: str, size: tuple[int, int], conv: dict, bias_add: float
+) -> str:
+    """``Conv3x3(C->1, zero padding 1)(_resize(x, size)) + bias_add`` -> (B,1,*size), computed
+    in the cheaper order: the 9 taps first, as a 1x1 conv C->9 on the small map, then the
+    resize of those 9 channels and a shifted sum of them.
+
+    Exact up to float32 rounding: a 1x1 conv mixes channels pixel by pixel and the bilinear
+    resize mixes pixels channel by channel (weights summing to 1), so they commute; tap
+    ``(dy, dx)`` of the 3x3 conv then reads its resized channel at ``(v + dy - 1, u + dx - 1)``,
+    0 outside (the conv's zero padding). A 3x3 conv with one output channel on a full-size
+    C-channel map is mostly overhead in ONNX Runtime and OpenVINO (the resize writes C full-size
+    channels, ORT pads the output channel to its 16-channel blocks): 177 -> 24 ms (ORT) and
+    110 -> 32 ms (OpenVINO) for C=64, 88x304 -> 352x1216 on a 2-core EPYC.
+    """
+    kernel = np.asarray(conv["kernel"], np.float32)  # (3, 3, C, 1) HWIO
+    if kernel.shape[:2] != (3, 3) or kernel.shape[3] != 1:
+        raise ExportError(f"expected a 3x3 conv with one output channel, got {kernel.shape}")
+    taps = kernel[..., 0].reshape(9, -1).T[None, None]  # (1, 1, C, 9): tap k = 3 * dy + dx
+    t = _resize(g, g.conv(x, {"kernel": taps}), size)  # (B, 9, H, W)
+    H, W = size
+    t = g.op("Pad", [t, g.const([0, 0, 1, 1, 0, 0, 1, 1], "pads", np.int64)], mode="constant")
+    axes = g.const([1, 2, 3], "ax", np.int64)
+    parts = [
+        g.op(
+            "Slice",
+            [
+                t,
+                g.const([3 * dy + dx, dy, dx], "st", np.int64),
+                g.const([3 * dy + dx + 1, dy + H, dx + W], "en", np.int64),
+                axes,
+            ],
+        )
+        for dy in range(3)
+        for dx in range(3)
+    ]
+    bias = np.asarray(conv.get("bias", np.zeros(1)), np.float32) + np.float32(bias_add)
+    return g.op("Add", [g.op("Sum", parts), g.const(bias.reshape(1, 1, 1, 1), "B")])
+
+
+def depth_graph(
+    model: DepthUNet, variables: dict, image_size: tuple[int, int], opset: int
+) -> onnx.ModelProto:
+    """ONNX graph of a :class:`~gac_jax.models.depth_unet.DepthUNet` (inference outputs)."""
+    if model.decoder_conv != "plain":
+        raise ExportError(
+            f"decoder_conv={model.decoder_conv!r} (DCNv2, e.g. configs/depth_kitti.py:reference) "
+            "cannot be exported: only the paper's plain decoder convolutions are; run this "
+            "model with --runtime jax"
+        )
+    H, W = image_size
+    g, w = GraphBuilder("gac_depth_unet"), _Weights(variables)
+    images = g.add_input("images", ["batch", H, W, 3])
+    P2 = g.add_input("P2", ["batch", 3, 4])
+    x = g.op("Transpose", [images], perm=[0, 3, 1, 2])
+    skips = _resnet(g, w, x, model.depth, model.width, 4, "backbone")
+    sizes = {f"layer{L}": (layer_output_size(H, L), layer_output_size(W, L)) for L in range(1, 5)}
+    rows = _projection_rows(g, P2) if model.use_gac else None
+    x, have = skips["layer4"], sizes["layer4"]
+    for name, skip, stride, gac in DECODER_STAGES:
+        want = sizes[skip]
+        up = _resize(g, x, (2 * have[0], 2 * have[1]))
+        up = _pad_or_crop(g, up, (2 * have[0], 2 * have[1]), want)
+        x = g.op("Concat", [skips[skip], up], axis=1)
+        if model.use_gac and gac:
+            if model.intrinsics_mode == "correct":
+                proj = _feature_rows(g, rows, (stride,), keep_ty=True)
+            else:
+                proj = _feature_rows(g, rows, (2.0 * stride, REFERENCE_GAC_STRIDE), keep_ty=False)
+            x = _ground_aware_conv(g, w, (name, "gac"), x, want, proj, _geometry(model))
+        x = g.conv(x, w.conv(name, "conv1"), w.bn(name, "bn1"), relu=True, winograd_size=want)
+        x = g.conv(x, w.conv(name, "conv2"), w.bn(name, "bn2"), relu=True)
+        have = want
+    log_depth = _resized_single_channel_conv(
+        g, x, (H, W), w.conv("out_scale_1"), float(model.prior_mean)
+    )
+    log_depth = g.reshape(log_depth, [-1, H, W])
+    g.add_output(log_depth, "log_depth", ["batch", H, W])
+    g.add_output(g.op("Exp", [log_depth]), "depth", ["batch", H, W])
+    return g.model(opset, "GAC ground-aware depth U-Net (gac_jax)")

@@ -1,0 +1,154 @@
+"""Which runtime runs the network: ``--runtime jax|onnxruntime|openvino --precision f32|bf16``.
+
+:func:`resolve_runtime` checks that a runtime/precision can run here; :func:`use_runtime`
+points a detector's evaluator at the exported network (exported into the run folder on first
+use, refused when stale), :func:`runtime_predictor` does the same for a depth network.
+Decoding, NMS and hill-climbing stay the project's own code for every runtime.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import jax.numpy as jnp
+
+from gac_jax.builders.detect3d import filter_options
+from gac_jax.data.files import KittiFormatError
+from gac_jax.evaluation.depth_evaluator import NetworkPredictor
+from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
+from gac_jax.trained.detector import LoadedDetector
+
+
+def resolve_runtime(runtime: str | None, precision: str | None) -> tuple[str, str]:
+    """``(runtime, precision)`` with the defaults (jax, f32) after checking they can run here.
+
+    Prints ``error: <why>`` (one line) and exits with code 2 when they cannot (missing
+    package, no native bf16); prints a one-line note for emulated precisions (JAX bf16).
+    """
+    from gac_jax.deploy.runtimes import RuntimeUnavailableError, check_runtime
+
+    runtime, precision = runtime or "jax", precision or "f32"
+    try:
+        note = check_runtime(runtime, precision)
+    except RuntimeUnavailableError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    if note:
+        print(note, flush=True)
+    return runtime, precision
+
+
+def run_suffix(runtime: str, precision: str) -> str:
+    """Result-folder suffix of a runtime/precision ('' for the default jitted float32)."""
+    if runtime == "jax" and precision == "f32":
+        return ""
+    return f"_{runtime}_{precision}"
+
+
+def default_export_dir(workdir: str | os.PathLike, detector: LoadedDetector) -> Path:
+    """Where ``--runtime onnxruntime|openvino`` keeps the export of these weights."""
+    return Path(workdir) / "export" / detector.tag
+
+
+def use_runtime(
+    evaluator: DetectionEvaluator,
+    detector: LoadedDetector,
+    workdir: str | os.PathLike,
+    runtime: str,
+    precision: str,
+    *,
+    export_dir: str | os.PathLike | None = None,
+    threads: int | None = None,
+) -> float:
+    """Points ``evaluator`` at the exported network in ``runtime`` (the jitted decoding,
+    top-k and host post-processing stay as they are); returns the load + warm-up seconds.
+
+    The export in ``export_dir`` (default :func:`default_export_dir`) is written when absent
+    and refused when stale or corrupted (:func:`gac_jax.deploy.export.sources.ensure_export`).
+    """
+    import time
+
+    from gac_jax.deploy.export.networks import ExportError
+    from gac_jax.deploy.export.sources import detector_source, ensure_export
+    from gac_jax.deploy.runtimes import DETECTOR_OUTPUTS, OnnxNetwork, RuntimeDetectionPredict
+
+    t0 = time.perf_counter()
+    config = detector.config
+    out = Path(export_dir) if export_dir else default_export_dir(workdir, detector)
+    source = detector_source(
+        config,
+        detector.model,
+        detector.variables,
+        step=detector.step,
+        checkpoint=None
+        if detector.step is not None
+        else detector.weights.removeprefix("converted weights "),
+        workdir=workdir,
+    )
+    try:
+        _, exported = ensure_export(source, out)
+    except ExportError as e:
+        raise KittiFormatError(out, str(e)) from None
+    if exported:
+        print(f"exported the network to {out}", flush=True)
+    size = (config.data.height, config.data.width)
+    network = OnnxNetwork(
+        out / "model.onnx",
+        runtime,
+        precision,
+        outputs=DETECTOR_OUTPUTS,
+        image_size=size,
+        threads=threads,
+        batch_size=evaluator.batch_size,
+    )
+    predict = RuntimeDetectionPredict(
+        network,
+        detector.constants,
+        top_k=evaluator.top_k,
+        score_threshold=evaluator.postprocess_config.score_threshold,
+        filter_options=filter_options(config),
+        use_ground_filter=config.anchors.filter,
+    )
+    predict.compile(evaluator.batch_size, size)
+    evaluator.predict = predict
+    return time.perf_counter() - t0
+
+
+def runtime_predictor(
+    config,
+    model,
+    variables,
+    step: int,
+    workdir: str | Path,
+    runtime: str,
+    precision: str,
+    export_dir: str | Path | None = None,
+):
+    """The depth predictor of a runtime: the jitted network (``jax``; ``bf16`` = bfloat16
+    compute dtype) or the exported one (written to ``export_dir``, default
+    ``W/export/step<N>``, when absent; refused when stale or corrupted)."""
+    if runtime == "jax":
+        if precision == "bf16":
+            model = model.clone(dtype=jnp.bfloat16)
+        return NetworkPredictor(model, variables)
+    from gac_jax.deploy.export.networks import ExportError
+    from gac_jax.deploy.export.sources import depth_source, ensure_export
+    from gac_jax.deploy.runtimes import DEPTH_OUTPUTS, OnnxNetwork, RuntimeDepthPredictor
+
+    out = Path(export_dir) if export_dir else Path(workdir) / "export" / f"step{step}"
+    try:
+        _, exported = ensure_export(depth_source(config, model, variables, step=step), out)
+    except ExportError as e:
+        raise KittiFormatError(out, str(e)) from None
+    if exported:
+        print(f"exported the network to {out}", flush=True)
+    network = OnnxNetwork(
+        out / "model.onnx",
+        runtime,
+        precision,
+        outputs=DEPTH_OUTPUTS,
+        image_size=(config.data.height, config.data.eval_width),
+    )
+    return RuntimeDepthPredictor(network)
