@@ -57,8 +57,17 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.root = ""
     # The embedded dataset (data.source='synthetic'): the detector's cache, its ROOT/depth.
     c.data.synthetic = ml_collections.ConfigDict(
-        dict(num_frames=1000, seed=0, height=375, width=1242, val_fraction=0.5, workers=0)
-    )  # workers: generator processes (0: one per core); the content does not depend on it
+        dict(
+            num_frames=1000,
+            seed=0,
+            height=375,
+            width=1242,
+            val_fraction=0.5,
+            rigs="kitti",
+            workers=0,
+        )
+    )  # rigs: 'kitti' | 'multi' (gac_jax/data/synthetic/rigs.py); workers: generator
+    # processes (0: one per core), the content does not depend on them
     c.data.train_split = "train"
     c.data.val_split = "val"
     c.data.val_selection = ""  # a depth_selection folder to evaluate on instead of val_split

@@ -31,8 +31,17 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.source = "kitti"  # 'kitti' (folder or prepared TFDS) | 'synthetic'
     c.data.root = ""
     c.data.synthetic = ml_collections.ConfigDict(
-        dict(num_frames=1000, seed=0, height=375, width=1242, val_fraction=0.5, workers=0)
-    )  # workers: generator processes (0: one per core); the content does not depend on it
+        dict(
+            num_frames=1000,
+            seed=0,
+            height=375,
+            width=1242,
+            val_fraction=0.5,
+            rigs="kitti",
+            workers=0,
+        )
+    )  # rigs: 'kitti' | 'multi' (gac_jax/data/synthetic/rigs.py); workers: generator
+    # processes (0: one per core), the content does not depend on them
     c.data.train_split = "train"
     c.data.val_split = "val"
     c.data.classes = ("Car",)

@@ -22,7 +22,8 @@ def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
         return Path(cfg.root)
     s = cfg.synthetic
     name = f"synthetic_n{s.num_frames}_s{s.seed}_{s.height}x{s.width}_val{s.val_fraction:g}"
-    return default_cache_dir() / name
+    rig_set = s.get("rigs", "kitti")
+    return default_cache_dir() / (name if rig_set == "kitti" else f"{name}_{rig_set}rig")
 
 
 def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
@@ -54,6 +55,7 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
             height=s.height,
             width=s.width,
             val_fraction=s.val_fraction,
+            rig_set=s.get("rigs", "kitti"),
             workers=s.get("workers") or None,  # 0 / absent: one per core
         )
     from gac_jax.training import multiprocess
