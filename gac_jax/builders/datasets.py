@@ -16,6 +16,22 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("GAC_JAX_CACHE", Path.home() / ".cache" / "gac_jax"))
 
 
+def synthetic_config() -> ml_collections.ConfigDict:
+    """The configs' ``data.synthetic`` block: what the embedded dataset is made of.
+
+    ``rigs``: ``'kitti'`` (KITTI's rigs) or ``'multi'`` (eight vehicles, ground planes,
+    :mod:`gac_jax.data.synthetic.rigs`); ``workers``: generator processes (0: one per
+    core; the content does not depend on them). Both configs share it, so the detector
+    and the depth network train on one generated dataset.
+    """
+    return ml_collections.ConfigDict(
+        dict(
+            num_frames=1000, seed=0, height=375, width=1242, val_fraction=0.5, rigs="kitti",
+            workers=0,
+        )
+    )  # fmt: skip
+
+
 def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
     """Folder of the embedded dataset described by ``cfg`` (``data.synthetic``)."""
     if cfg.get("root"):
