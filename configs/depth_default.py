@@ -15,7 +15,8 @@ row-mean baselines and the Base U-Net::
     python evaluate.py --task depth --baseline row-mean --workdir WORKDIR
     python train.py --task depth --config configs/depth_default.py:base
 
-Variants: ``:tiny`` (tests, seconds), ``:base`` (no GAC, the "Base U-Net").
+Variants: ``:tiny`` (tests, seconds), ``:base`` (no GAC, the "Base U-Net"), ``:multirig`` (the
+embedded dataset of eight camera rigs, two held out into split ``val_heldout``).
 """
 
 from __future__ import annotations
@@ -68,7 +69,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         c.eval.num_pictures = 1
     if "base" in variants:
         c.model.use_gac = False
-    unknown = variants - {"tiny", "base"}
+    if "multirig" in variants:  # eight camera rigs, two held out (split val_heldout)
+        c.data.synthetic.rigs = "multi"
+        c.data.synthetic.val_fraction = 0.2
+    unknown = variants - {"tiny", "base", "multirig"}
     if unknown:
-        raise ValueError(f"unknown variants {sorted(unknown)} (known: tiny, base)")
+        raise ValueError(f"unknown variants {sorted(unknown)} (known: tiny, base, multirig)")
     return c

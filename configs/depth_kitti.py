@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import ml_collections
 
+from gac_jax.builders.datasets import synthetic_config
 from gac_jax.depth.depth_loss import PAPER_LOSS_OPTIONS, REFERENCE_LOSS_OPTIONS
 
 
@@ -56,9 +57,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.source = "kitti"  # 'kitti' (KITTI-depth root or prepared TFDS) | 'synthetic'
     c.data.root = ""
     # The embedded dataset (data.source='synthetic'): the detector's cache, its ROOT/depth.
-    c.data.synthetic = ml_collections.ConfigDict(
-        dict(num_frames=1000, seed=0, height=375, width=1242, val_fraction=0.5, workers=0)
-    )  # workers: generator processes (0: one per core); the content does not depend on it
+    c.data.synthetic = synthetic_config()  # used with data.source='synthetic'
     c.data.train_split = "train"
     c.data.val_split = "val"
     c.data.val_selection = ""  # a depth_selection folder to evaluate on instead of val_split

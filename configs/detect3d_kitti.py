@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import ml_collections
 
+from gac_jax.builders.datasets import synthetic_config
+
 
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c = ml_collections.ConfigDict()
@@ -30,9 +32,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data = ml_collections.ConfigDict()
     c.data.source = "kitti"  # 'kitti' (folder or prepared TFDS) | 'synthetic'
     c.data.root = ""
-    c.data.synthetic = ml_collections.ConfigDict(
-        dict(num_frames=1000, seed=0, height=375, width=1242, val_fraction=0.5, workers=0)
-    )  # workers: generator processes (0: one per core); the content does not depend on it
+    c.data.synthetic = synthetic_config()  # used with data.source='synthetic'
     c.data.train_split = "train"
     c.data.val_split = "val"
     c.data.classes = ("Car",)

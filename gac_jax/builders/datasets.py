@@ -16,13 +16,30 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("GAC_JAX_CACHE", Path.home() / ".cache" / "gac_jax"))
 
 
+def synthetic_config() -> ml_collections.ConfigDict:
+    """The configs' ``data.synthetic`` block: what the embedded dataset is made of.
+
+    ``rigs``: ``'kitti'`` (KITTI's rigs) or ``'multi'`` (eight vehicles, ground planes,
+    :mod:`gac_jax.data.synthetic.rigs`); ``workers``: generator processes (0: one per
+    core; the content does not depend on them). Both configs share it, so the detector
+    and the depth network train on one generated dataset.
+    """
+    return ml_collections.ConfigDict(
+        dict(
+            num_frames=1000, seed=0, height=375, width=1242, val_fraction=0.5, rigs="kitti",
+            workers=0,
+        )
+    )  # fmt: skip
+
+
 def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
     """Folder of the embedded dataset described by ``cfg`` (``data.synthetic``)."""
     if cfg.get("root"):
         return Path(cfg.root)
     s = cfg.synthetic
     name = f"synthetic_n{s.num_frames}_s{s.seed}_{s.height}x{s.width}_val{s.val_fraction:g}"
-    return default_cache_dir() / name
+    rig_set = s.get("rigs", "kitti")
+    return default_cache_dir() / (name if rig_set == "kitti" else f"{name}_{rig_set}rig")
 
 
 def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
@@ -54,6 +71,7 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
             height=s.height,
             width=s.width,
             val_fraction=s.val_fraction,
+            rig_set=s.get("rigs", "kitti"),
             workers=s.get("workers") or None,  # 0 / absent: one per core
         )
     from gac_jax.training import multiprocess

@@ -17,6 +17,7 @@ LiDAR-like sparse depth are derived from the renders.
 Modules:
 
 * ``calibration`` - camera rigs (real KITTI intrinsics), calib file contents.
+* ``rigs`` - rig sets: KITTI's (default) or eight vehicles with ground planes (``--rigs multi``).
 * ``shapes`` - convex solids; part models of cars, pedestrians, cyclists.
 * ``scene`` / ``roadside`` - sampling a scene (road, roadside, road users, light).
 * ``render`` - ray-casting z-buffer rasteriser; ``materials`` - surface appearance.

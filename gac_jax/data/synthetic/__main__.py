@@ -92,6 +92,13 @@ def build_parser() -> argparse.ArgumentParser:
         "classes not listed are absent",
     )
     p.add_argument(
+        "--rigs",
+        choices=("kitti", "multi"),
+        default="kitti",
+        help="camera rigs: kitti (KITTI's, 1.65 m, level; default) or multi (eight vehicles, "
+        "1.2-2.4 m, pitch -6..+7 deg, two held out into val_heldout; writes training/planes)",
+    )
+    p.add_argument(
         "--overwrite", action="store_true", help="replace a dataset made with other arguments"
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -111,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
             width=args.width,
             val_fraction=args.val_fraction,
             classes=classes,
+            rig_set=args.rigs,
             workers=args.workers,
             overwrite=args.overwrite,
             progress=not args.quiet,

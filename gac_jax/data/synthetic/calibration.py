@@ -28,14 +28,15 @@ BASELINE = 0.54  # metres between P2 and P3 (and between P0 and P1)
 
 @dataclasses.dataclass(frozen=True)
 class CameraRig:
-    """One recording day: intrinsics ``K`` (3, 3) at 375x1242 and the P2 column 3 of real KITTI.
+    """One recording day: intrinsics ``K`` (3, 3) at ``size`` and the P2 column 3.
 
     Attributes:
       date: KITTI raw date string, e.g. ``"2011_09_26"``.
-      K: (3, 3) intrinsics at ``KITTI_SIZE``.
+      K: (3, 3) intrinsics at ``size`` (KITTI's 375x1242 for the real days).
       p2_col3: (3,) ``P2[:, 3]`` of the real calibration (pixels, pixels, metres).
       velo_rotation: (3, 3) rotation LiDAR -> camera 0.
       velo_translation: (3,) LiDAR origin in camera 0.
+      size: (H, W) of the rig's native images.
     """
 
     date: str
@@ -43,6 +44,7 @@ class CameraRig:
     p2_col3: np.ndarray
     velo_rotation: np.ndarray
     velo_translation: np.ndarray
+    size: tuple[int, int] = KITTI_SIZE  # (H, W) that K and p2_col3 refer to
 
 
 def _K(f: float, cx: float, cy: float) -> np.ndarray:
@@ -94,10 +96,10 @@ RIGS: tuple[CameraRig, ...] = (
 RIG_WEIGHTS = np.array([0.6, 0.2, 0.2])  # most KITTI object frames come from the 721.5 px days
 
 
-def scale_matrix(image_size: tuple[int, int]) -> np.ndarray:
-    """(3, 3) pixel scaling from the 375x1242 KITTI grid to ``image_size = (H, W)``."""
+def scale_matrix(image_size: tuple[int, int], native: tuple[int, int] = KITTI_SIZE) -> np.ndarray:
+    """(3, 3) pixel scaling from the ``native`` grid (KITTI's 375x1242) to ``image_size``."""
     height, width = image_size
-    return np.diag([width / KITTI_SIZE[1], height / KITTI_SIZE[0], 1.0])
+    return np.diag([width / native[1], height / native[0], 1.0])
 
 
 def projections(rig: CameraRig, image_size: tuple[int, int]) -> dict[int, np.ndarray]:
@@ -106,7 +108,7 @@ def projections(rig: CameraRig, image_size: tuple[int, int]) -> dict[int, np.nda
     t2 = np.linalg.solve(K, rig.p2_col3)  # camera-2 translation in metres
     shift = np.array([-BASELINE, 0.0, 0.0])
     translations = {0: np.zeros(3), 1: shift, 2: t2, 3: t2 + shift}
-    S = scale_matrix(image_size)
+    S = scale_matrix(image_size, rig.size)
     out = {}
     for cam, t in translations.items():
         P = np.concatenate([K, (K @ t)[:, None]], axis=1)

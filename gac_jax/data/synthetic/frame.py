@@ -12,7 +12,7 @@ import dataclasses
 import numpy as np
 
 from gac_jax.data.kitti import Calibration, KittiObjects
-from gac_jax.data.synthetic import calibration, labels, lidar, render
+from gac_jax.data.synthetic import calibration, labels, lidar, render, rigs
 from gac_jax.data.synthetic.scene import Scene, sample_scene
 
 
@@ -21,8 +21,11 @@ class Frame:
     """A rendered frame.
 
     Attributes:
-      rig: index into :data:`calibration.RIGS`.
+      rig: index into the rig set's cameras (:func:`rigs.cameras`).
+      image_size: (H, W) of this frame's images.
       calib: the frame's KITTI calibration (P0..P3 for this image size).
+      plane: (4,) the road ``a x + b y + c z + d = 0`` in the reference camera frame
+        (normal up, ``d`` = camera height; KITTI ``planes/`` convention).
       scene: the sampled scene (camera pose, road, solids, road users).
       views: camera (2 or 3) -> :class:`~gac_jax.data.synthetic.render.ViewRender`.
       objects: labels of the left view; label_source: (M,) scene object per label line.
@@ -30,7 +33,9 @@ class Frame:
     """
 
     rig: int
+    image_size: tuple[int, int]
     calib: Calibration
+    plane: np.ndarray
     scene: Scene
     views: dict[int, render.ViewRender]
     objects: KittiObjects
@@ -43,10 +48,9 @@ def _streams(seed: int, index: int) -> list[np.random.Generator]:
     return [np.random.default_rng(c) for c in children]
 
 
-def frame_rig(seed: int, index: int) -> int:
-    """Which camera rig (recording day) frame ``index`` uses; cheap, no rendering."""
-    rng = _streams(seed, index)[0]
-    return int(rng.choice(len(calibration.RIGS), p=calibration.RIG_WEIGHTS))
+def frame_rig(seed: int, index: int, rig_set: str = "kitti") -> int:
+    """Which camera rig (recording day or vehicle) frame ``index`` uses; cheap, no rendering."""
+    return rigs.choose_rig(rig_set, _streams(seed, index)[0])
 
 
 def make_frame(
@@ -56,17 +60,25 @@ def make_frame(
     counts: dict[str, tuple[int, int]] | None = None,
     pitch: float | None = None,
     camera_height: float | None = None,
+    rig_set: str = "kitti",
 ) -> Frame:
     """Samples and renders frame ``index`` of the dataset ``seed``.
 
     Args:
-      image_size: (H, W); the rig intrinsics are scaled from 375x1242.
+      image_size: (H, W) of KITTI's rigs; the intrinsics are scaled from 375x1242 (another
+        rig set's native sizes by the same factors, :func:`rigs.image_size`).
       counts: class -> (min, max) road users (default ``scene.DEFAULT_COUNTS``).
-      pitch, camera_height: fix the camera pose instead of sampling it.
+      pitch, camera_height: fix the camera pose (radians, metres) instead of sampling it.
+      rig_set: ``"kitti"`` (the default dataset) or ``"multi"`` (:mod:`rigs`).
     """
-    _, scene_rng, camera_rng, lidar_rng = _streams(seed, index)
-    rig_index = frame_rig(seed, index)
-    rig = calibration.RIGS[rig_index]
+    rig_rng, scene_rng, camera_rng, lidar_rng = _streams(seed, index)
+    rig_index = rigs.choose_rig(rig_set, rig_rng)
+    rig = rigs.cameras(rig_set)[rig_index]
+    pose = rigs.sample_pose(rig_set, rig_index, rig_rng)
+    if pose is not None:
+        pitch = pose[0] if pitch is None else pitch
+        camera_height = pose[1] if camera_height is None else camera_height
+    image_size = rigs.image_size(rig, image_size)
     calib = calibration.object_calibration(rig, image_size)
     scene = sample_scene(scene_rng, calib.P2, image_size, counts, pitch, camera_height)
     views = {
@@ -80,4 +92,5 @@ def make_frame(
         )
         for cam, P in ((2, calib.P2), (3, calib.P3))
     }
-    return Frame(rig_index, calib, scene, views, objects, source, sparse)
+    plane = rigs.ground_plane(scene.ground_normal, scene.camera_height)
+    return Frame(rig_index, image_size, calib, plane, scene, views, objects, source, sparse)

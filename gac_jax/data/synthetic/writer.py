@@ -34,7 +34,7 @@ import numpy as np
 
 from gac_jax.data import files
 from gac_jax.data.kitti import write_calib, write_label, write_split
-from gac_jax.data.synthetic import calibration
+from gac_jax.data.synthetic import calibration, rigs
 from gac_jax.data.synthetic.frame import frame_rig, make_frame
 from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
 from gac_jax.data.worker_lifetime import Owner, exit_with_owner
@@ -55,9 +55,11 @@ class DatasetSpec:
     width: int = calibration.KITTI_SIZE[1]
     val_fraction: float = 0.5
     classes: tuple[tuple[str, int, int], ...] = tuple((k, *v) for k, v in DEFAULT_COUNTS.items())
+    rigs: str = "kitti"  # the camera rig set (gac_jax.data.synthetic.rigs)
 
     def validate(self) -> None:
         """Raises ValueError with a clear message for unusable arguments."""
+        rigs.check_rig_set(self.rigs)
         if not isinstance(self.num_frames, int | np.integer) or self.num_frames < 1:
             raise ValueError(
                 f"number of frames must be a positive integer, got {self.num_frames!r}"
@@ -98,34 +100,69 @@ class DatasetSpec:
             "width": int(self.width),
             "val_fraction": float(self.val_fraction),
             "classes": {name: [int(lo), int(hi)] for name, lo, hi in self.classes},
+            # (absent for KITTI's rigs: the default dataset's description is what it was)
+            **({"rigs": self.rigs} if self.rigs != "kitti" else {}),
         }
 
     def splits(self) -> dict[str, list[int]]:
-        """Frame indices of ``train`` and ``val``: the first frames train, the last ``val``."""
-        n = self.num_frames
+        """Frame indices of ``train`` and ``val``: the first frames train, the last ``val``.
+
+        With the ``"multi"`` rig set, frames of held-out rigs form ``val_heldout`` instead
+        (never trained on), and the others are divided as above.
+        """
+        ids = list(range(self.num_frames))
+        heldout = []
+        if self.rigs != "kitti":
+            held = {i for i in ids if rigs.heldout(self.rigs, frame_rig(self.seed, i, self.rigs))}
+            heldout = [i for i in ids if i in held]
+            ids = [i for i in ids if i not in held]
+        n = len(ids)
         n_val = int(round(n * self.val_fraction))
         if 0.0 < self.val_fraction < 1.0 and n >= 2:
             n_val = min(max(n_val, 1), n - 1)
-        return {"train": list(range(n - n_val)), "val": list(range(n - n_val, n))}
+        out = {"train": ids[: n - n_val], "val": ids[n - n_val :]}
+        return {**out, "val_heldout": heldout} if self.rigs != "kitti" else out
+
+    def subsets(self) -> dict[str, list[int]]:
+        """Extra split files (subsets of :meth:`splits`): ``train_kitti_rig`` / ``val_kitti_rig``,
+        the frames of the KITTI-like rig of the ``"multi"`` set (the cross-rig experiment
+        trains there and tests on ``val_heldout``)."""
+        if self.rigs == "kitti":
+            return {}
+        parts = self.splits()
+        on_kitti = {
+            i
+            for i in range(self.num_frames)
+            if rigs.MULTI_RIGS[frame_rig(self.seed, i, self.rigs)].name == "kitti"
+        }
+        return {f"{k}_kitti_rig": [i for i in parts[k] if i in on_kitti] for k in ("train", "val")}
 
 
-def drive_name(rig: int, split: str) -> str:
+SPLIT_DRIVE_OFFSET = {"train": 0, "val": 100, "val_heldout": 200}
+
+
+def drive_name(rig: int, split: str, rig_set: str = "kitti") -> str:
     """KITTI-raw-style drive of a (rig, split): e.g. ``2011_09_26_drive_9001_sync``."""
-    number = 9001 + rig + (100 if split == "val" else 0)
-    return f"{calibration.RIGS[rig].date}_drive_{number:04d}_sync"
+    number = 9001 + rig + SPLIT_DRIVE_OFFSET[split]
+    return f"{rigs.cameras(rig_set)[rig].date}_drive_{number:04d}_sync"
 
 
-def frame_paths(root: Path, index: int, rig: int, split: str) -> dict[str, Path]:
-    """Every file of frame ``index`` (keys: image_2, image_3, calib, label, sparse_2, ...)."""
+def frame_paths(
+    root: Path, index: int, rig: int, split: str, rig_set: str = "kitti"
+) -> dict[str, Path]:
+    """Every file of frame ``index`` (keys: image_2, image_3, calib, label, sparse_2, ...;
+    ``plane`` for the ``"multi"`` rig set)."""
     fid, long_id = f"{index:06d}", f"{index:010d}"
-    drive = drive_name(rig, split)
-    date = calibration.RIGS[rig].date
+    drive = drive_name(rig, split, rig_set)
+    date = rigs.cameras(rig_set)[rig].date
     paths = {
         "image_2": root / "training" / "image_2" / f"{fid}.png",
         "image_3": root / "training" / "image_3" / f"{fid}.png",
         "calib": root / "training" / "calib" / f"{fid}.txt",
         "label": root / "training" / "label_2" / f"{fid}.txt",
     }
+    if rig_set != "kitti":
+        paths["plane"] = root / "training" / "planes" / f"{fid}.txt"
     for cam in (2, 3):
         for key, kind in (("sparse", "data_depth_annotated"), ("dense", "data_depth_dense")):
             paths[f"{key}_{cam}"] = (
@@ -183,10 +220,13 @@ def _write_frame(job: _Job, index: int) -> float:
     """Renders and writes frame ``index``; returns the seconds it took."""
     start = time.perf_counter()
     spec = job.spec
-    frame = make_frame(spec.seed, index, spec.image_size, spec.counts)
-    paths = frame_paths(Path(job.root), index, frame.rig, job.split_of[index])
+    frame = make_frame(spec.seed, index, spec.image_size, spec.counts, rig_set=spec.rigs)
+    paths = frame_paths(Path(job.root), index, frame.rig, job.split_of[index], spec.rigs)
     write_calib(paths["calib"], frame.calib)
     write_label(paths["label"], frame.objects)
+    if "plane" in paths:
+        with files.atomic_write(paths["plane"]) as f:
+            f.write(rigs.plane_text(frame.plane))
     for cam in (2, 3):
         view = frame.views[cam]
         dense = files.depth_to_uint16(view.depth)
@@ -271,6 +311,7 @@ def generate_dataset(
     width: int = calibration.KITTI_SIZE[1],
     val_fraction: float = 0.5,
     classes: dict[str, tuple[int, int]] | None = None,
+    rig_set: str = "kitti",
     workers: int | None = None,
     overwrite: bool = False,
     progress: bool = False,
@@ -289,6 +330,8 @@ def generate_dataset(
       val_fraction: share of frames (the last ones) in ``ImageSets/val.txt``.
       classes: class -> (min, max) road users per frame; default
         ``{"Car": (3, 8), "Pedestrian": (0, 4), "Cyclist": (0, 2)}``.
+      rig_set: ``"kitti"`` (KITTI's rigs) or ``"multi"`` (eight vehicles, two held out into
+        ``val_heldout``, ``training/planes/``; :mod:`gac_jax.data.synthetic.rigs`).
       workers: processes (default ``os.cpu_count()``; 1 = in this process).
       overwrite: replace a dataset made with other arguments instead of failing.
       progress: show a progress bar.
@@ -305,6 +348,7 @@ def generate_dataset(
         width=width,
         val_fraction=float(val_fraction),
         classes=tuple((str(k), int(lo), int(hi)) for k, (lo, hi) in counts.items()),
+        rigs=rig_set,
     )
     spec.validate()
     root = Path(out_dir)
@@ -313,17 +357,21 @@ def generate_dataset(
     state = _check_target(root, spec, overwrite)
     splits = spec.splits()
     split_of = {i: name for name, ids in splits.items() for i in ids}
-    rigs = [frame_rig(seed, i) for i in range(num_frames)]
+    subsets = spec.subsets()
+    frame_rigs = [frame_rig(seed, i, rig_set) for i in range(num_frames)]
     todo = [
         i
         for i in range(num_frames)
         if state == "fresh"
-        or not all(p.exists() for p in frame_paths(root, i, rigs[i], split_of[i]).values())
+        or not all(
+            p.exists() for p in frame_paths(root, i, frame_rigs[i], split_of[i], rig_set).values()
+        )
     ]
-    dataset_files = [root / "ImageSets" / f"{name}.txt" for name in (*splits, "trainval")]
+    lists = (*splits, *subsets, "trainval")
+    dataset_files = [root / "ImageSets" / f"{name}.txt" for name in lists]
     dataset_files += [
         root / "depth" / "raw" / rig.date / name
-        for rig in calibration.RIGS
+        for rig in rigs.cameras(rig_set)
         for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt")
     ]
     if state == "done" and not todo and all(p.exists() for p in dataset_files):
@@ -337,13 +385,13 @@ def generate_dataset(
     _remove_temporaries(root)
     seconds = _run(_Job(str(root), spec, split_of), todo, workers, progress)
 
-    for name, ids in splits.items():
+    for name, ids in {**splits, **subsets}.items():
         write_split(root / "ImageSets" / f"{name}.txt", [f"{i:06d}" for i in ids])
     write_split(root / "ImageSets" / "trainval.txt", [f"{i:06d}" for i in range(num_frames)])
-    for rig in calibration.RIGS:
+    for rig in rigs.cameras(rig_set):
         raw = root / "depth" / "raw" / rig.date
         with files.atomic_write(raw / "calib_cam_to_cam.txt") as f:
-            f.write(calibration.cam_to_cam_text(rig, spec.image_size))
+            f.write(calibration.cam_to_cam_text(rig, rigs.image_size(rig, spec.image_size)))
         with files.atomic_write(raw / "calib_velo_to_cam.txt") as f:
             f.write(calibration.velo_to_cam_text(rig))
     with files.atomic_write(root / DONE) as f:
