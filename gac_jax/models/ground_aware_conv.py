@@ -10,6 +10,11 @@ ground-plane depth prior. Pure helpers (all in feature-map pixel units):
   ground contact point.
 * :func:`vertical_gather` - linear interpolation of a feature map along its height axis.
 
+:func:`disparity_prior` and :func:`base_offset` are the paper's formulas, i.e. a level camera
+``EL`` above the road. The module itself takes the frame's ground plane (``(B, 4)``, default
+the level plane of ``camera_height``) and uses their general-plane forms, per pixel
+(:mod:`gac_jax.models.ground_plane`), which equal these for a level plane.
+
 Coordinates: feature row ``v`` (0 at the top, down positive) of a feature map whose
 projection is ``P_f`` = ``P`` with rows 0 and 1 divided by the stride (what the reference
 does; it treats feature pixel ``v`` as input pixel ``stride * v``). ``fy = P_f[1,1]``,
@@ -35,17 +40,32 @@ import jax
 import jax.numpy as jnp
 from flax import linen as nn
 
+from gac_jax.geometry import DEFAULT_CAMERA_HEIGHT, level_plane
+from gac_jax.models.ground_plane import offset_and_disparity_maps
 from gac_jax.models.initializers import torch_conv_bias_init, torch_conv_kernel_init
 
 OFFSET_FORMULAS = ("paper", "reference", "reference_v1")
 DEFAULT_BASELINE = 0.54  # m, virtual stereo baseline (KITTI-like)
-DEFAULT_CAMERA_HEIGHT = 1.65  # m, camera elevation above the ground ("EL")
 DEFAULT_OBJECT_HEIGHT = 1.535  # m, mean object (car) height ("h_mean")
 
 
 def _float_array(x) -> jax.Array:
     x = jnp.asarray(x)
     return x.astype(jnp.result_type(x.dtype, jnp.float32))
+
+
+def frame_planes(plane: jax.Array | None, batch: int, camera_height: float, dtype) -> jax.Array:
+    """(B, 4) ground planes: ``plane`` as given, or the level plane ``(0, -1, 0, camera_height)``.
+
+    Args:
+      plane: (B, 4) ``(a, b, c, d)`` with a unit upward normal (``b < 0``) in the rectified
+        camera frame (:mod:`gac_jax.models.ground_plane`), or None.
+    """
+    if plane is None:
+        return jnp.broadcast_to(jnp.asarray(level_plane(camera_height), dtype), (batch, 4))
+    if plane.shape != (batch, 4):
+        raise ValueError(f"plane must have shape (B,4) = {(batch, 4)}, got {plane.shape}")
+    return jnp.asarray(plane, dtype)
 
 
 def feature_projection(P: jax.Array, stride: float) -> jax.Array:
@@ -170,15 +190,19 @@ def vertical_gather(features: jax.Array, rows: jax.Array) -> jax.Array:
 class GroundAwareConv(nn.Module):
     """The GAC module (reference ``LookGround``): C channels in, C channels out.
 
-    Steps, for features ``x`` (B,H,W,C) and the input-image projection ``P`` (B,3,4):
+    Steps, for features ``x`` (B,H,W,C), the input-image projection ``P`` (B,3,4) and the
+    ground ``plane`` (B,4) (None: the level plane of ``camera_height``, the paper's case):
 
     1. ``d0 = tanh(offset_conv(x))`` (conv 3x3 C->1), gradient-scaled as
        ``offset_grad_scale * d0 + (1 - offset_grad_scale) * stop_gradient(d0)`` (the forward
        value is unchanged, its gradient is scaled by 0.05), then ``d = offset_scale * d0``
        (normalised units, see the module docstring).
-    2. ``G = [disparity_prior ‖ x]`` (C+1 channels; the prior is channel 0).
+    2. ``G = [disparity ‖ x]`` (C+1 channels; the prior is channel 0), the plane's
+       :func:`~gac_jax.models.ground_plane.ground_disparity` at each pixel
+       (:func:`disparity_prior` for a level plane).
     3. ``S = vertical_gather(G, v + offset_rows)`` with
-       ``offset_rows = (base_offset / (H/2) + d) * (H-1)/2``.
+       ``offset_rows = (base / (H/2) + d) * (H-1)/2``, ``base`` the plane's
+       :func:`~gac_jax.models.ground_plane.ground_offset` (:func:`base_offset` when level).
     4. ``out = ReLU(x + alpha * extract(S))``, ``extract`` = conv 1x1 (C+1)->C, ``alpha`` a
        learned scalar initialised to 0, so the module is the identity at init for ``x >= 0``.
 
@@ -200,7 +224,9 @@ class GroundAwareConv(nn.Module):
     param_dtype: Any = jnp.float32
 
     @nn.compact
-    def __call__(self, x: jax.Array, P: jax.Array) -> dict[str, jax.Array]:
+    def __call__(
+        self, x: jax.Array, P: jax.Array, plane: jax.Array | None = None
+    ) -> dict[str, jax.Array]:
         if x.ndim != 4:
             raise ValueError(f"expected NHWC features (B,H,W,C), got shape {x.shape}")
         B, H, W, C = x.shape
@@ -227,15 +253,22 @@ class GroundAwareConv(nn.Module):
         d0 = g * d0 + (1.0 - g) * jax.lax.stop_gradient(d0)
         d = self.offset_scale * d0  # (B,H,W), grid_sample-normalised units
 
-        P = jnp.asarray(P, geo)
-        disp = disparity_prior(H, P, self.stride, self.baseline, self.camera_height)  # (B,H)
-        base_rows = base_offset(
-            H, P, self.stride, self.object_height, self.camera_height, self.offset_formula
-        )  # (B,H)
-        offset_rows = (base_rows[:, :, None] / (H / 2.0) + d) * ((H - 1) / 2.0)
+        if self.offset_formula not in OFFSET_FORMULAS:
+            formula = self.offset_formula
+            raise ValueError(f"offset_formula must be one of {OFFSET_FORMULAS}, got {formula!r}")
+        Pf = feature_projection(jnp.asarray(P, geo), self.stride)
+        base_rows, disp = offset_and_disparity_maps(
+            Pf,
+            frame_planes(plane, B, self.camera_height, geo),
+            (H, W),
+            self.object_height,
+            self.baseline,
+            self.offset_formula,
+        )  # (B,H,W) each
+        offset_rows = (base_rows / (H / 2.0) + d) * ((H - 1) / 2.0)
         rows = jnp.arange(H, dtype=geo)[None, :, None] + offset_rows
 
-        disp_map = jnp.broadcast_to(disp[:, :, None, None], (B, H, W, 1)).astype(x.dtype)
+        disp_map = disp[..., None].astype(x.dtype)
         sampled = vertical_gather(jnp.concatenate([disp_map, x], axis=-1), rows)
         extracted = nn.Conv(
             C,
