@@ -111,6 +111,15 @@ def _resnet(
 # ----------------------------------------------------------------------------- GAC
 
 
+def _binary(op: str, swap: bool = False):
+    """A :class:`_Sym` arithmetic method emitting ``op`` (``swap``: the reflected one)."""
+
+    def method(self, x):
+        return self._op(op, x, self) if swap else self._op(op, self, x)
+
+    return method
+
+
 class _Sym:
     """An ONNX tensor with Python arithmetic, so :mod:`gac_jax.models.ground_plane`'s formulas
     (written with ``+ - * /`` only) emit the graph ops of the same computation."""
@@ -124,29 +133,10 @@ class _Sym:
     def _op(self, op: str, *args) -> _Sym:
         return _Sym(self.g, self.g.op(op, [self._arg(a) for a in args]))
 
-    def __add__(self, x):
-        return self._op("Add", self, x)
-
-    def __radd__(self, x):
-        return self._op("Add", x, self)
-
-    def __sub__(self, x):
-        return self._op("Sub", self, x)
-
-    def __rsub__(self, x):
-        return self._op("Sub", x, self)
-
-    def __mul__(self, x):
-        return self._op("Mul", self, x)
-
-    def __rmul__(self, x):
-        return self._op("Mul", x, self)
-
-    def __truediv__(self, x):
-        return self._op("Div", self, x)
-
-    def __rtruediv__(self, x):
-        return self._op("Div", x, self)
+    __add__, __radd__ = _binary("Add"), _binary("Add", swap=True)
+    __sub__, __rsub__ = _binary("Sub"), _binary("Sub", swap=True)
+    __mul__, __rmul__ = _binary("Mul"), _binary("Mul", swap=True)
+    __truediv__, __rtruediv__ = _binary("Div"), _binary("Div", swap=True)
 
     def __neg__(self):
         return self._op("Neg", self)
