@@ -54,11 +54,13 @@ def pitched_plane(degrees: float, height: float = 1.65) -> np.ndarray:
     return np.array([0.0, -np.cos(p), -np.sin(p), height])
 
 
-def test_both_modes_follow_a_tilted_plane():
-    """Centres 1.0 / 2.5 / -0.5 m above a road pitched 20 degrees (20 m ahead): paper mode
-    keeps the height in (-0.15, 2.15), reference mode the depth below the camera along the
-    normal (1.65 - height) in (-0.5, 1.8); a level y band would keep none of them."""
-    plane = pitched_plane(20.0)
+@pytest.mark.parametrize("camera", [1.65, 2.4])
+def test_both_modes_follow_a_tilted_plane(camera):
+    """Centres 1.0 / 2.5 / -0.5 m above a road pitched 20 degrees (20 m ahead), the camera
+    ``camera`` above it: paper mode keeps the height in (-0.15, 2.15), reference mode the depth
+    below a camera 1.65 m above the road (1.65 - height) in (-0.5, 1.8); a level y band would
+    keep none of them."""
+    plane = pitched_plane(20.0, camera)
     n = plane[:3]
     on_road = np.array([0.0, -(n[2] * 20.0 + plane[3]) / n[1], 20.0])
     centres = np.stack([on_road + h * n for h in (1.0, 2.5, -0.5)])

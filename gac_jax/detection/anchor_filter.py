@@ -13,12 +13,14 @@ test time.
 Two modes:
 
 ``"reference"`` (visualDet3D ``filter_anchor``): ``x = (u - cx) z / f``,
-  ``y = (v - cy) z / fy`` (translations of ``P2`` ignored); keep iff the point's
-  depth below the camera along the plane normal, ``-n . X``, lies in
-  ``y_range`` (default (-0.5, 1.8) m) and ``|x| < x_limit`` (40 m). For a level
-  plane ``-n . X = y``: the reference's y band. The reference divides x by
-  ``fy`` (``x_focal="fy"``); the paper's equation uses ``fx``
-  (``x_focal="fx"``); on KITTI fx = fy.
+  ``y = (v - cy) z / fy`` (translations of ``P2`` ignored); keep iff the
+  reference's y band (default (-0.5, 1.8) m) holds for the depth of ``X`` below
+  a camera ``camera_height`` above the road, ``camera_height - (n . X + d)``,
+  and ``|x| < x_limit`` (40 m). For the level plane of ``camera_height`` that
+  depth is ``y``: the reference exactly; for any other plane the band moves with
+  the road (height above it in ``(camera_height - 1.8, camera_height + 0.5)``).
+  The reference divides x by ``fy`` (``x_focal="fy"``); the paper's equation
+  uses ``fx`` (``x_focal="fx"``); on KITTI fx = fy.
 
 ``"paper"`` (the paper's ground-plane form): exact back-projection through
   ``P2`` (including its translation column, x divided by fx) and the object
@@ -72,6 +74,7 @@ def _keep(
     y_range,
     x_limit,
     x_focal,
+    camera_height,
     height_range,
     invalid_bins,
 ):
@@ -90,7 +93,8 @@ def _keep(
     if mode == "reference":
         x = (u - cx) * z / (fy if x_focal == "fy" else fx)
         y = (v - cy) * z / fy
-        below = -(a * x + b * y + c * z)  # depth below the camera along the normal (= y level)
+        # depth below a camera camera_height above the road; y itself for the level plane
+        below = -(a * x + b * y + c * z) + (camera_height - d)
         keep = (below > y_range[0]) & (below < y_range[1])
     else:
         w = z + tz  # homogeneous depth of a point at camera-frame depth z
@@ -158,6 +162,7 @@ def ground_filter_mask(
         y_range,
         x_limit,
         x_focal,
+        camera_height,
         height_range,
         invalid_bins,
     )
@@ -211,6 +216,7 @@ def ground_filter_mask_np(
         y_range,
         x_limit,
         x_focal,
+        camera_height,
         height_range,
         invalid_bins,
     )
