@@ -398,6 +398,7 @@ class TfdsObjectSource:
             "image": f"{base}/image_{camera}",
             "calib": f"{base}/calib",
             "label": f"{base}/label_2",
+            "plane": f"{base}/planes",
         }
         image = rec[f"image_{camera}"]
         if not image:
@@ -409,7 +410,10 @@ class TfdsObjectSource:
                     where["label"], "prepared dataset has no label for this frame"
                 )
             label = _text(rec["label"])
-        return object_sample_from_bytes(frame_id, camera, image, _text(rec["calib"]), label, where)
+        plane = _text(rec["plane"]) if "plane" in rec else ""  # datasets before 1.1.0 have none
+        return object_sample_from_bytes(
+            frame_id, camera, image, _text(rec["calib"]), label, where, plane or None
+        )
 
 
 class TfdsDepthSource:
