@@ -52,7 +52,7 @@ from gac_jax.evaluation.viz import depth_panel, save_image
 
 MIN_WRITTEN_DEPTH = 1.0 / 256.0  # the smallest non-zero 16-bit value
 MAX_WRITTEN_DEPTH = 65535.0 / 256.0
-BASELINE_CAMERA_HEIGHT = 1.65
+BASELINE_CAMERA_HEIGHT = geometry.DEFAULT_CAMERA_HEIGHT  # frames without a planes/ file
 BASELINE_MAX_DEPTH = 80.0
 
 
