@@ -258,3 +258,22 @@ def test_ground_depth_of_a_tilted_plane_is_the_ray_plane_depth():
     assert X[2] == pytest.approx(z[v, u]) and np.all(np.isfinite(z[200:])) and C[2] < 0
     level = geometry.ground_depth_map((375, 1242), KITTI_P2)
     np.testing.assert_array_equal(np.isinf(level[:173]), True)
+
+
+def test_ground_plane_baseline_uses_each_frames_plane():
+    """NaN = a frame without a plane: the predictor's level plane."""
+    from gac_jax.evaluation.depth_evaluator import GroundPlanePredictor
+
+    A = transforms.resize_affine((375, 1242), (188, 621))
+    batch = {
+        "P2": np.stack([A @ KITTI_P2] * 2).astype(np.float32),
+        "image_transform": np.stack([A] * 2).astype(np.float32),
+        "original_size": np.array([[375, 1242]] * 2),
+        "plane": np.stack([tilted(10.0, 3.0), np.full(4, np.nan)]).astype(np.float32),
+    }
+    pitched, level = GroundPlanePredictor(1.5, 80.0)(batch)
+    P0 = np.linalg.solve(A.astype(np.float32), batch["P2"][0].astype(np.float64))
+    for got, plane in ((pitched, tilted(10.0, 3.0)), (level, geometry.level_plane(1.5))):
+        want = np.minimum(geometry.ground_depth_map((375, 1242), P0, plane=plane), 80.0)
+        np.testing.assert_allclose(got, want, rtol=1e-5)
+    assert np.ptp(pitched[300]) > 0.1 and np.ptp(level[300]) == 0  # the roll tilts each row
