@@ -17,10 +17,12 @@ from gac_jax.data.sources import KittiObjectSource
 from gac_jax.models.ground_aware_conv import (
     GroundAwareConv,
     base_offset,
+    bilinear_gather,
     disparity_prior,
     feature_projection,
+    vertical_gather,
 )
-from gac_jax.models.ground_plane import offset_and_disparity_maps
+from gac_jax.models.ground_plane import ground_maps
 from tests.tilted_frames import scene_plane, write_tilted_root
 
 KITTI_P2 = np.array(
@@ -39,12 +41,10 @@ def tilted(pitch_deg: float, roll_deg: float = 0.0, height: float = 1.65) -> np.
 
 
 def maps64(P, plane, size, stride=1.0, h=1.535, baseline=0.54, formula="paper"):
-    """(offset, disparity) (H, W) float64 of one frame."""
+    """(offset rows, offset cols, disparity) (H, W) float64 of one frame."""
     with jax.enable_x64(True):
         Pf = feature_projection(jnp.asarray(P, jnp.float64)[None], stride)
-        out = offset_and_disparity_maps(
-            Pf, jnp.asarray(plane, jnp.float64)[None], size, h, baseline, formula
-        )
+        out = ground_maps(Pf, jnp.asarray(plane, jnp.float64)[None], size, h, baseline, formula)
         return tuple(np.asarray(x[0]) for x in out)
 
 
@@ -56,14 +56,15 @@ def test_level_plane_gives_the_paper_formulas_by_hand():
     """fy = 700, cy = 100, Ty = 0.2, h = 1.5, EL = 1.65: offset h (v - cy) / (2 EL - h),
     disparity fy B (v - cy) / (fy EL + Ty), 0 at and above the horizon; every column alike."""
     P = np.array([[700.0, 0, 300, 40.0], [0, 700.0, 100, 0.2], [0, 0, 1, 0.003]])
-    offset, disp = maps64(P, geometry.level_plane(1.65), (201, 7), h=1.5)
+    offset, cols, disp = maps64(P, geometry.level_plane(1.65), (201, 7), h=1.5)
+    assert not cols.any()  # a level plane: the bottom point is straight below
     assert offset[150, 3] == pytest.approx(41.666666666666664, rel=1e-12)  # 1.5 * 50 / 1.8
     assert disp[150, 3] == pytest.approx(700 * 0.54 * 50 / 1155.2, rel=1e-12)  # 16.3608...
     assert disp[150, 3] == pytest.approx(16.360803324099724, rel=1e-12)
     assert offset[100].max() == disp[100].max() == 0.0
     assert offset[:100].max() == disp[:100].max() == 0.0
     np.testing.assert_array_equal(offset, offset[:, :1].repeat(7, axis=1))
-    v1, _ = maps64(P, geometry.level_plane(1.65), (201, 7), h=1.5, formula="reference_v1")
+    v1, _, _ = maps64(P, geometry.level_plane(1.65), (201, 7), h=1.5, formula="reference_v1")
     assert v1[150, 0] == pytest.approx(1.5 * 50 / 2 * (1.65 - 0.75), rel=1e-12)  # 33.75
 
 
@@ -72,7 +73,9 @@ def test_level_plane_gives_the_paper_formulas_by_hand():
 def test_level_plane_equals_base_offset_and_disparity_prior(formula, stride):
     """On the real KITTI P2, every row and column, float64."""
     H, W = 375 // stride, 1242 // stride
-    offset, disp = maps64(KITTI_P2, geometry.level_plane(1.65), (H, W), stride, formula=formula)
+    level = geometry.level_plane(1.65)
+    offset, cols, disp = maps64(KITTI_P2, level, (H, W), stride, formula=formula)
+    assert not cols.any()
     with jax.enable_x64(True):
         P = jnp.asarray(KITTI_P2[None], jnp.float64)
         ref_offset = np.asarray(base_offset(H, P, stride, offset_formula=formula))[0]
@@ -83,16 +86,16 @@ def test_level_plane_equals_base_offset_and_disparity_prior(formula, stride):
 
 
 def ray_plane_offset(P, plane, u, v, h):
-    """Rows from the centre seen at (u, v) to its bottom point (rays from the origin)."""
+    """(rows, cols) from the centre seen at (u, v) to its bottom point (rays from the origin)."""
     M, n, d = P[:, :3], plane[:3], plane[3]
     r = np.linalg.solve(M, [u, v, 1.0])
     t = (h / 2 - d) / (n @ r)  # n . (t r) + d = h / 2
     if t <= 0:
-        return 0.0
+        return 0.0, 0.0
     bottom = t * r - h / 2 * n
     assert geometry.height_above_plane(bottom, plane) == pytest.approx(0.0, abs=1e-9)
     p = M @ bottom
-    return max(p[1] / p[2] - v, 0.0)
+    return max(p[1] / p[2] - v, 0.0), p[0] / p[2] - u
 
 
 def ray_plane_disparity(P, plane, u, v, baseline):
@@ -112,12 +115,14 @@ def ray_plane_disparity(P, plane, u, v, baseline):
 def test_tilted_planes_equal_a_ray_plane_intersection(plane):
     stride, (H, W), h = 16.0, (24, 78), 1.535
     Pf = KITTI_P2 * np.array([[1 / stride], [1 / stride], [1.0]])
-    offset, disp = maps64(KITTI_P2, plane, (H, W), stride, h=h)
+    offset, cols, disp = maps64(KITTI_P2, plane, (H, W), stride, h=h)
     rng = np.random.default_rng(0)
     for v, u in zip(rng.integers(0, H, 40), rng.integers(0, W, 40), strict=True):
-        assert offset[v, u] == pytest.approx(ray_plane_offset(Pf, plane, u, v, h), abs=1e-9)
+        rows_want, cols_want = ray_plane_offset(Pf, plane, u, v, h)
+        assert offset[v, u] == pytest.approx(rows_want, abs=1e-9)
+        assert cols[v, u] == pytest.approx(cols_want, abs=1e-9)
         assert disp[v, u] == pytest.approx(ray_plane_disparity(Pf, plane, u, v, 0.54), abs=1e-9)
-    assert offset.max() > 1.0 and disp.max() > 1.0
+    assert offset.max() > 1.0 and disp.max() > 1.0 and np.abs(cols).max() > 0.1
     assert np.ptp(offset[H // 2]) > 1e-3 or plane[0] == 0  # a roll varies along the row
 
 
@@ -152,9 +157,28 @@ def test_module_takes_the_plane_as_an_input_without_retracing(gac):
     a, b = apply(variables, x, P, level), apply(variables, x, P, pitched)
     assert apply._cache_size() == 1
     assert np.abs(np.asarray(a["offset_rows"]) - np.asarray(b["offset_rows"])).max() > 0.1
+    assert not np.asarray(a["offset_cols"]).any() and np.abs(b["offset_cols"]).max() > 0.1
     assert np.abs(np.asarray(a["features"]) - np.asarray(b["features"])).max() > 1e-3
     with pytest.raises(ValueError, match="plane must have shape"):
         module.apply(variables, x, P, level[:1])
+
+
+def test_bilinear_gather_is_vertical_gather_at_integer_columns_and_else_bilinear():
+    rng = np.random.default_rng(0)
+    f = jnp.asarray(rng.normal(size=(2, 5, 6, 3)), jnp.float32)
+    rows = jnp.asarray(rng.uniform(-1, 6, (2, 5, 6)), jnp.float32)
+    u = jnp.broadcast_to(jnp.arange(6.0), (2, 5, 6))
+    np.testing.assert_array_equal(bilinear_gather(f, rows, u), vertical_gather(f, rows))
+    cols = jnp.asarray(rng.uniform(-1, 7, (2, 5, 6)), jnp.float32)
+    got = np.asarray(bilinear_gather(f, rows, cols))
+    fn = np.asarray(f, np.float64)
+    for b, v, c in [(0, 1, 2), (1, 4, 5), (1, 0, 0), (0, 3, 4)]:
+        r, q = np.clip(float(rows[b, v, c]), 0, 4), np.clip(float(cols[b, v, c]), 0, 5)
+        r0, q0 = min(int(r), 3), min(int(q), 4)
+        wr, wq = r - r0, q - q0
+        want = (1 - wr) * (1 - wq) * fn[b, r0, q0] + wr * (1 - wq) * fn[b, r0 + 1, q0]
+        want += (1 - wr) * wq * fn[b, r0, q0 + 1] + wr * wq * fn[b, r0 + 1, q0 + 1]
+        np.testing.assert_allclose(got[b, v, c], want, rtol=1e-5, atol=1e-6)
 
 
 # ---------------------------------------------------------------------------------------------

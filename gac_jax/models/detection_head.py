@@ -47,7 +47,7 @@ from gac_jax.models.ground_aware_conv import (
     feature_projection,
     frame_planes,
 )
-from gac_jax.models.ground_plane import offset_and_disparity_maps
+from gac_jax.models.ground_plane import ground_maps
 from gac_jax.models.initializers import torch_conv_bias_init, torch_conv_kernel_init
 from gac_jax.models.resnet import batch_norm_layer
 
@@ -174,9 +174,7 @@ class DetectionHead(nn.Module):
         else:
             Pf = feature_projection(jnp.asarray(P2, jnp.float32), self.stride)
             planes = frame_planes(plane, B, self.camera_height, jnp.float32)
-            _, disp = offset_and_disparity_maps(
-                Pf, planes, (H, W), self.object_height, self.baseline, "paper"
-            )
+            _, _, disp = ground_maps(Pf, planes, (H, W), self.object_height, self.baseline, "paper")
             r = jnp.concatenate([disp[..., None].astype(x.dtype), x], axis=-1)
             r = nn.relu(self._conv(C, C + 1, "disparity_conv")(r))
         for i, in_features in enumerate((C, self.reg_features), start=1):

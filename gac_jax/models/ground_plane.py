@@ -22,14 +22,15 @@ The object centre seen at ``(u, v)`` is ``X_c = z r`` with ``n . X_c + d = k``, 
 
     offset = v_b - v = k (v g2 - g1) down / (d - k - k g2 down)
 
-(ReLU'd, 0 above the horizon, as the reference). For ``(0, -1, 0, EL)`` and ``M`` of KITTI
-structure: ``g = (0, -fy, 0)``, ``down = (v - cy) / fy``, so ``offset = k (v - cy) / (EL - k)
-= h (v - cy) / (2 EL - h)``: the paper's formula ('paper' and 'reference'). 'reference_v1'
-(release 1.0's missing parentheses, ``h (v - cy) / 2 * (EL - h/2)``) generalises as the true
-offset times ``(d - k)^2``. Only the row component is used: GAC gathers along the column
-(as the reference's ``grid_sample`` with unchanged x); for a pitched or rolled camera the
-bottom point also moves sideways by ``k (u g2 - g0) down / (d - k - k g2 down)`` columns, which
-the module does not follow.
+(ReLU'd, 0 above the horizon, as the reference), and likewise it lies
+``k (u g2 - g0) down / (d - k - k g2 down)`` columns to the side. For ``(0, -1, 0, EL)`` and
+``M`` of KITTI structure: ``g = (0, -fy, 0)``, ``down = (v - cy) / fy``, so
+``offset = k (v - cy) / (EL - k) = h (v - cy) / (2 EL - h)``: the paper's formula ('paper' and
+'reference'). 'reference_v1' (release 1.0's missing parentheses, ``h (v - cy) / 2 * (EL -
+h/2)``) generalises as the true offset (both parts) times ``(d - k)^2``. The sideways part is
+exactly 0 for a level plane (``g0 = 0``), so GAC there samples its own column as the
+reference's ``grid_sample`` with unchanged x does; for a pitched or rolled camera it follows
+the bottom point sideways too.
 
 **Disparity prior** (:func:`ground_disparity`): the virtual stereo disparity ``fy B / z_g`` of
 the road point seen at ``(u, v)``, on the ray from ``-M^-1 [Tx, Ty, 0]`` (the reference keeps
@@ -90,15 +91,23 @@ def _down(terms, u, v):
 
 
 def ground_offset(terms, u, v, object_height: float, offset_formula: str, ops=JNP_OPS):
-    """Rows from the object centre at ``(u, v)`` down to its road contact point (>= 0)."""
+    """``(rows, cols)`` from the object centre at ``(u, v)`` to its road contact point.
+
+    ``rows = ReLU(k (v g2 - g1) down / den)`` (>= 0, down the image) and
+    ``cols = k (u g2 - g0) down / den`` with ``den = d - k - k g2 down`` (floored at
+    ``MIN_DEPTH_RATIO``); both 0 above the horizon, ``cols`` 0 for a level plane. For
+    ``'reference_v1'`` both are scaled by ``(d - k)^2``.
+    """
     k = object_height / 2.0
     g, d = terms["g"], terms["d"]
     down = ops.relu(_down(terms, u, v))
-    den = ops.maximum(d - k - k * g[2] * down, MIN_DEPTH_RATIO)
-    offset = ops.relu(k * (v * g[2] - g[1]) * down / den)
+    ratio = k * down / ops.maximum(d - k - k * g[2] * down, MIN_DEPTH_RATIO)
+    rows = ops.relu((v * g[2] - g[1]) * ratio)
+    cols = (u * g[2] - g[0]) * ratio
     if offset_formula == "reference_v1":
-        offset = offset * ((d - k) * (d - k))
-    return offset
+        scale = (d - k) * (d - k)
+        rows, cols = rows * scale, cols * scale
+    return rows, cols
 
 
 def ground_disparity(terms, u, v, baseline: float, ops=JNP_OPS):
@@ -114,26 +123,27 @@ def _entries(Pf: jax.Array, plane: jax.Array):
     return P, [plane[:, i][:, None, None] for i in range(4)]
 
 
-def offset_and_disparity_maps(
+def ground_maps(
     Pf: jax.Array,
     plane: jax.Array,
     size: tuple[int, int],
     object_height: float,
     baseline: float,
     offset_formula: str,
-) -> tuple[jax.Array, jax.Array]:
-    """``(ground_offset, ground_disparity)`` at every pixel of an (H, W) feature map.
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(offset rows, offset cols, disparity)`` (:func:`ground_offset`,
+    :func:`ground_disparity`) at every pixel of an (H, W) feature map.
 
     Args:
       Pf: (B, 3, 4) feature-map projection; plane: (B, 4) unit upward normal + height.
     Returns:
-      two (B, H, W) arrays in the dtype of ``Pf``.
+      three (B, H, W) arrays in the dtype of ``Pf``.
     """
     H, W = size
     terms = plane_terms(*_entries(Pf, jnp.asarray(plane, Pf.dtype)))
     u = jnp.arange(W, dtype=Pf.dtype)[None, None, :]
     v = jnp.arange(H, dtype=Pf.dtype)[None, :, None]
-    offset = ground_offset(terms, u, v, object_height, offset_formula)
+    rows, cols = ground_offset(terms, u, v, object_height, offset_formula)
     disparity = ground_disparity(terms, u, v, baseline)
     shape = (Pf.shape[0], H, W)
-    return jnp.broadcast_to(offset, shape), jnp.broadcast_to(disparity, shape)
+    return tuple(jnp.broadcast_to(x, shape) for x in (rows, cols, disparity))

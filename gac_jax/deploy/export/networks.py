@@ -174,17 +174,54 @@ def _feature_projection(
 
 def _plane_maps(
     g: GraphBuilder, P: list[list], plane: list[_Sym], size: tuple[int, int], geometry: dict
-) -> tuple[str, str]:
-    """(B,1,H,W) ground offset and disparity prior of :mod:`gac_jax.models.ground_plane`."""
+) -> tuple[str, str, str]:
+    """(B,1,H,W) ground offset rows, cols and disparity prior of
+    :mod:`gac_jax.models.ground_plane`."""
     H, W = size
     terms = plane_terms(P, plane)
     u = _Sym(g, g.const(np.arange(W, dtype=np.float32).reshape(1, 1, W), "cols"))
     v = _Sym(g, g.const(np.arange(H, dtype=np.float32).reshape(1, H, 1), "rows"))
-    offset = ground_offset(
+    rows, cols = ground_offset(
         terms, u, v, geometry["object_height"], geometry["offset_formula"], _SYM_OPS
     )
     disparity = ground_disparity(terms, u, v, geometry["baseline"], _SYM_OPS)
-    return g.reshape(offset.name, [-1, 1, H, W]), g.reshape(disparity.name, [-1, 1, H, W])
+    return tuple(g.reshape(t.name, [-1, 1, H, W]) for t in (rows, cols, disparity))
+
+
+def _taps(g: GraphBuilder, x: str, n: int) -> tuple[str, str, str]:
+    """Border-clamped linear taps of coordinates ``x`` on ``[0, n-1]``: ``(i0, i1, frac)``
+    (int64, int64, float), as :func:`~gac_jax.models.ground_aware_conv.bilinear_gather`."""
+    x = g.op("Clip", [x, g.const(np.float32(0.0)), g.const(np.float32(n - 1.0))])
+    x0 = g.op(
+        "Clip",
+        [g.op("Floor", [x]), g.const(np.float32(0.0)), g.const(np.float32(max(n - 2, 0)))],
+    )
+    i0 = g.op("Cast", [x0], to=onnx.TensorProto.INT64)
+    i1 = g.op(
+        "Min", [g.op("Add", [i0, g.const(1, "one", np.int64)]), g.const(n - 1, "nm1", np.int64)]
+    )
+    return i0, i1, g.op("Sub", [x, x0])
+
+
+def _bilinear_gather(g: GraphBuilder, feats: str, rows: str, cols: str, size) -> str:
+    """:func:`~gac_jax.models.ground_aware_conv.bilinear_gather` on NCHW ``feats`` with
+    (B,1,H,W) ``rows`` / ``cols``: four GatherElements on the flattened H*W axis."""
+    H, W = size
+    r0, r1, wr = _taps(g, rows, H)
+    c0, c1, wc = _taps(g, cols, W)
+    flat = g.reshape(feats, [0, 0, H * W])
+    shape = g.op("Shape", [flat])
+
+    def at(r, c):
+        index = g.op("Add", [g.op("Mul", [r, g.const(W, "w", np.int64)]), c])
+        index = g.op("Expand", [g.reshape(index, [0, 1, H * W]), shape])
+        return g.reshape(g.op("GatherElements", [flat, index], axis=2), [0, 0, H, W])
+
+    def lerp(a, b, t):
+        one_minus = g.op("Sub", [g.const(np.float32(1.0)), t])
+        return g.op("Add", [g.op("Mul", [one_minus, a]), g.op("Mul", [t, b])])
+
+    return lerp(lerp(at(r0, c0), at(r1, c0), wr), lerp(at(r0, c1), at(r1, c1), wr), wc)
 
 
 def _ground_aware_conv(
@@ -201,30 +238,19 @@ def _ground_aware_conv(
     if geometry["offset_formula"] not in OFFSET_FORMULAS:
         raise ExportError(f"offset_formula {geometry['offset_formula']!r} is not exportable")
     H, W = size
-    base, disp_map = _plane_maps(g, P, plane, size, geometry)  # (B,1,H,W) each
+    base, base_cols, disp_map = _plane_maps(g, P, plane, size, geometry)  # (B,1,H,W) each
     # the learned residual d = offset_scale * tanh(offset_conv(x))
     d = g.op("Tanh", [g.conv(x, w.conv(*path, "offset_conv"))])  # (B,1,H,W)
     d = g.op("Mul", [d, g.const(np.float32(geometry["offset_scale"]))])
     offset = g.op("Add", [g.op("Mul", [base, g.const(np.float32(1.0 / (H / 2.0)))]), d])
     offset = g.op("Mul", [offset, g.const(np.float32((H - 1) / 2.0))])
     rows = g.op("Add", [g.const(np.arange(H, dtype=np.float32).reshape(1, 1, H, 1)), offset])
-    # vertical linear interpolation of [disp ‖ x] with border clamping
+    offset_cols = g.op("Mul", [base_cols, g.const(np.float32(1.0 / (W / 2.0)))])
+    offset_cols = g.op("Mul", [offset_cols, g.const(np.float32((W - 1) / 2.0))])
+    cols = g.op("Add", [g.const(np.arange(W, dtype=np.float32).reshape(1, 1, 1, W)), offset_cols])
+    # bilinear interpolation of [disp ‖ x] with border clamping
     feats = g.op("Concat", [disp_map, x], axis=1)
-    rows = g.op("Clip", [rows, g.const(np.float32(0.0)), g.const(np.float32(H - 1.0))])
-    r0 = g.op(
-        "Clip",
-        [g.op("Floor", [rows]), g.const(np.float32(0.0)), g.const(np.float32(max(H - 2, 0)))],
-    )
-    frac = g.op("Sub", [rows, r0])
-    i0 = g.op("Cast", [r0], to=onnx.TensorProto.INT64)
-    i1 = g.op(
-        "Min", [g.op("Add", [i0, g.const(1, "one", np.int64)]), g.const(H - 1, "hm1", np.int64)]
-    )
-    shape = g.op("Shape", [feats])
-    f0 = g.op("GatherElements", [feats, g.op("Expand", [i0, shape])], axis=2)
-    f1 = g.op("GatherElements", [feats, g.op("Expand", [i1, shape])], axis=2)
-    one_minus = g.op("Sub", [g.const(np.float32(1.0)), frac])
-    sampled = g.op("Add", [g.op("Mul", [one_minus, f0]), g.op("Mul", [frac, f1])])
+    sampled = _bilinear_gather(g, feats, rows, cols, size)
     alpha = float(w.value(*path, "alpha")[0])
     extracted = g.conv(sampled, w.conv(*path, "extract"), scale=alpha)  # alpha folded in
     return g.op("Relu", [g.op("Add", [x, extracted])])
@@ -276,7 +302,7 @@ def detector_graph(
     elif block == "conv":
         r = g.conv(x, w.conv("head", "plain_conv"), relu=True)
     elif block == "disparity_conv":
-        _, disp = _plane_maps(g, P, plane, (Hf, Wf), geometry)
+        _, _, disp = _plane_maps(g, P, plane, (Hf, Wf), geometry)
         r = g.conv(g.op("Concat", [disp, x], axis=1), w.conv("head", "disparity_conv"), relu=True)
     else:
         raise ExportError(
