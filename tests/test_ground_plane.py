@@ -301,3 +301,18 @@ def test_ground_plane_baseline_uses_each_frames_plane():
         want = np.minimum(geometry.ground_depth_map((375, 1242), P0, plane=plane), 80.0)
         np.testing.assert_allclose(got, want, rtol=1e-5)
     assert np.ptp(pitched[300]) > 0.1 and np.ptp(level[300]) == 0  # the roll tilts each row
+
+
+def test_predict_cli_source_reads_the_kitti_layouts_plane(tilted_root):
+    from gac_jax.cli.predict import ImageSource
+
+    image = tilted_root / "training" / "image_2" / "000000.png"
+    calib = tilted_root / "training" / "calib" / "000000.txt"
+    sample = ImageSource([image], [calib])[0]
+    np.testing.assert_array_equal(
+        sample["plane"], read_plane(tilted_root / "training/planes/000000.txt")
+    )
+    (tilted_root / "alone").mkdir()
+    alone = tilted_root / "alone" / "000000.png"
+    alone.write_bytes(image.read_bytes())
+    assert "plane" not in ImageSource([alone], [calib])[0]  # then the config's level plane
