@@ -11,6 +11,8 @@ Frames and conventions used throughout gac_jax:
   are ``(h, w, l)``, ``rotation_y`` is the yaw about the camera y axis; at
   ``ry = 0`` the object's length points along +x.
 * 2D boxes are ``xyxy``.
+* ground plane: ``(a, b, c, d)`` of ``a x + b y + c z + d = 0`` in the camera frame with a
+  unit normal pointing up (``b < 0``), ``d`` = camera height (:func:`normalize_plane`).
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ BOX_EDGES = np.array(
 )
 # Corners of the front face (the face the object heads towards, +x at ry=0).
 FRONT_FACE = np.array([0, 1, 5, 4])
+# KITTI's camera height above the road (m): the ground plane of a frame that has none.
+DEFAULT_CAMERA_HEIGHT = 1.65
 
 
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
@@ -175,42 +179,69 @@ def box2d_from_corners(
     return boxes
 
 
-def ground_depth(v: np.ndarray, P: np.ndarray, camera_height: float = 1.65) -> np.ndarray:
-    """Depth ``z`` of the ground plane ``y = camera_height`` seen at image row ``v``.
+def level_plane(camera_height: float = DEFAULT_CAMERA_HEIGHT) -> np.ndarray:
+    """(4,) plane ``(0, -1, 0, camera_height)``: a level camera ``camera_height`` above the road."""
+    return np.array([0.0, -1.0, 0.0, float(camera_height)])
 
-    Exact for a KITTI ``P`` (including ``P[1,3]`` and ``P[2,3]``): solving
-    ``v (z + P[2,3]) = fy * EL + cy * z + P[1,3]`` for ``z``. Rows at or above
-    the horizon (``v <= cy``, up to the tiny ``P[2,3]`` term) have no ground
-    and return ``inf``.
+
+def normalize_plane(plane: np.ndarray) -> np.ndarray:
+    """``(a, b, c, d)`` of ``a x + b y + c z + d = 0`` scaled to a unit normal pointing up.
+
+    Up is ``-y`` (y points down), so the result has ``b < 0`` and ``d`` is the camera's height
+    above the plane (the height of a point ``X`` above it is ``n . X + d``). Raises ValueError
+    for a normal that is zero, not finite or horizontal (``b = 0``: not a ground plane).
     """
-    P = np.asarray(P, dtype=np.float64)
-    v = np.asarray(v, dtype=np.float64)
-    fy, cy, ty, tz = P[1, 1], P[1, 2], P[1, 3], P[2, 3]
-    num = fy * camera_height + ty - v * tz
-    den = v - cy
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = num / den
-    return np.where((den > 0) & (z > 0), z, np.inf)
+    plane = np.asarray(plane, dtype=np.float64)
+    norm = np.linalg.norm(plane[..., :3], axis=-1, keepdims=True)
+    if not np.all(np.isfinite(plane)) or np.any(norm == 0) or np.any(plane[..., 1] == 0):
+        raise ValueError(f"not a ground plane (finite, non-zero normal with b != 0): {plane}")
+    return plane / norm * -np.sign(plane[..., 1:2])
 
 
-def ground_disparity_prior(
-    height: int, P: np.ndarray, camera_height: float = 1.65, baseline: float = 0.54
+def height_above_plane(points: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """Signed height (...) of camera-frame points (..., 3) above a normalised ``plane`` (4,)."""
+    plane = np.asarray(plane, dtype=np.float64)
+    return np.asarray(points, dtype=np.float64) @ plane[:3] + plane[3]
+
+
+def ground_depth(
+    v: np.ndarray,
+    P: np.ndarray,
+    camera_height: float = DEFAULT_CAMERA_HEIGHT,
+    *,
+    u: np.ndarray | float = 0.0,
+    plane: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Per-row virtual disparity of the ground plane, the paper's GAC depth prior.
+    """Depth ``z`` (camera frame) of the road seen at image pixel ``(u, v)``.
 
-    ``d(v) = ReLU(fy * B * (v - cy) / (fy * EL + Ty))`` for rows ``v = 0..height-1``
-    of an image with projection ``P`` (pixels of that image). Returns (height,).
+    The road is ``plane`` (a normalised ``(a, b, c, d)``, :func:`normalize_plane`) or, when
+    None, the level road ``y = camera_height`` (then ``u`` does not matter). Exact for any
+    ``P``: the ray from the optical centre ``C`` through the pixel meets the plane at
+    ``C + t r``; for a level road and a KITTI ``P`` this solves
+    ``v (z + P[2,3]) = fy * EL + cy * z + P[1,3]``. Pixels whose ray does not descend to the
+    road (at or above the horizon) return ``inf``.
     """
     P = np.asarray(P, dtype=np.float64)
-    fy, cy, ty = P[1, 1], P[1, 2], P[1, 3]
-    v = np.arange(height, dtype=np.float64)
-    return np.maximum(fy * baseline * (v - cy) / (abs(fy * camera_height + ty) + 1e-10), 0.0)
+    plane = level_plane(camera_height) if plane is None else np.asarray(plane, np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    u = np.broadcast_to(np.asarray(u, dtype=np.float64), v.shape)
+    M_inv = np.linalg.inv(P[:, :3])
+    C = -M_inv @ P[:, 3]
+    r = np.stack([u, v, np.ones_like(v)], axis=-1) @ M_inv.T  # (..., 3) ray directions
+    n_r = r @ plane[:3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -(plane[:3] @ C + plane[3]) / n_r
+    z = C[2] + t * r[..., 2]
+    return np.where((n_r < 0) & (t > 0) & (z > 0), z, np.inf)
 
 
 def ground_depth_map(
-    image_size: tuple[int, int], P: np.ndarray, camera_height: float = 1.65
+    image_size: tuple[int, int],
+    P: np.ndarray,
+    camera_height: float = DEFAULT_CAMERA_HEIGHT,
+    plane: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(H, W) depth of a level road ``camera_height`` below the camera (inf above the horizon)."""
+    """(H, W) road depth (:func:`ground_depth`) at every pixel (inf above the horizon)."""
     height, width = image_size
-    z = ground_depth(np.arange(height, dtype=np.float64), P, camera_height)
-    return np.broadcast_to(z[:, None], (height, width)).copy()
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    return ground_depth(v, P, camera_height, u=u, plane=plane)

@@ -49,6 +49,32 @@ def test_hand_checked_reference_and_paper_cases():
     np.testing.assert_array_equal(keep, [True, False, True, False, True])
 
 
+def pitched_plane(degrees: float, height: float = 1.65) -> np.ndarray:
+    p = np.radians(degrees)
+    return np.array([0.0, -np.cos(p), -np.sin(p), height])
+
+
+@pytest.mark.parametrize("camera", [1.65, 2.4])
+def test_both_modes_follow_a_tilted_plane(camera):
+    """Centres 1.0 / 2.5 / -0.5 m above a road pitched 20 degrees (20 m ahead), the camera
+    ``camera`` above it: paper mode keeps the height in (-0.15, 2.15), reference mode the depth
+    below a camera 1.65 m above the road (1.65 - height) in (-0.5, 1.8); a level y band would
+    keep none of them."""
+    plane = pitched_plane(20.0, camera)
+    n = plane[:3]
+    on_road = np.array([0.0, -(n[2] * 20.0 + plane[3]) / n[1], 20.0])
+    centres = np.stack([on_road + h * n for h in (1.0, 2.5, -0.5)])
+    assert np.allclose(geometry.height_above_plane(centres, plane), [1.0, 2.5, -0.5])
+    uv, _ = geometry.project(centres, P_SIMPLE)
+    mean_z, valid = centres[None, :, 2], np.ones((1, 3), bool)
+    for mode in ("reference", "paper"):
+        for fn in (ground_filter_mask_np, ground_filter_mask):
+            keep = np.asarray(fn(uv, mean_z, valid, P_SIMPLE, plane, mode=mode))
+            np.testing.assert_array_equal(keep, [True, False, False], err_msg=mode)
+        level = ground_filter_mask_np(uv, mean_z, valid, P_SIMPLE, mode=mode)
+        np.testing.assert_array_equal(level, [False, False, False])  # y = -6.5, -7.9, -5.1 m
+
+
 def test_any_class_keeps_an_anchor_and_invalid_bins_keep_none():
     # Anchor 1 is 210 px below cy: y3d = 6 m at class 0's depth 20 m, 1.5 m at class 1's 5 m.
     centers = np.array([[600.0, 180 + 700 * 1.0 / 20], [600.0, 180 + 210]])
@@ -101,6 +127,13 @@ def test_jitted_jnp_matches_numpy_on_a_batch(mode):
     want = ground_filter_mask_np(anchors.centers, mean_z, valid, P2, mode=mode)
     assert got.shape == (3, n) and 0.05 < want.mean() < 0.95
     assert (got != want).sum() <= 2  # float32 vs float64 right at a threshold
+    # the default is the level plane of camera_height, exactly; other planes do not retrace
+    level = np.tile(geometry.level_plane(1.65), (3, 1))
+    np.testing.assert_array_equal(np.asarray(fn(anchors.centers, mean_z, valid, P2, level)), got)
+    planes = np.stack([pitched_plane(a, 1.65 + 0.1 * a) for a in (3.0, -2.0, 6.0)])
+    got = np.asarray(fn(anchors.centers, mean_z, valid, P2, planes))
+    want = ground_filter_mask_np(anchors.centers, mean_z, valid, P2, planes, mode=mode)
+    assert (got != want).sum() <= 2 and fn._cache_size() == 2  # None and an array
 
 
 def _kitti_network_frames(root):

@@ -439,7 +439,7 @@ def test_each_gac_stage_gets_the_intrinsics_of_its_stride(kitti_samples, mode):
 
         def record(next_fun, args, kwargs, context):
             if isinstance(context.module, GroundAwareConv) and context.method_name == "__call__":
-                feats, P_given = args
+                feats, P_given = args[:2]  # (x, P, plane)
                 stage = context.module.scope.path[-2]
                 used[stage] = feature_projection(P_given, context.module.stride)
                 shapes[stage] = feats.shape

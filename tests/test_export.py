@@ -59,13 +59,25 @@ def projections(batch: int, height: int, width: int, scale: float = 1.0) -> np.n
     return np.stack(out).astype(np.float32)
 
 
+def planes(batch: int) -> np.ndarray:
+    """(B,4) tilted ground planes, different per image: pitched down 20 degrees (the authors'
+    issue #69), then also rolled and lower (``(a, b, c, d)``, unit upward normal)."""
+    out = []
+    for b in range(batch):
+        pitch, roll = np.radians(20.0 - 8.0 * b), np.radians(5.0 * b)
+        n = np.array([np.sin(roll), -np.cos(roll) * np.cos(pitch), -np.cos(roll) * np.sin(pitch)])
+        out.append(np.append(n, 1.65 - 0.3 * b))
+    return np.stack(out).astype(np.float32)
+
+
 def session(model) -> ort.InferenceSession:
     return ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
 
 
-def run(sess, images, P2) -> dict:
+def run(sess, images, P2, plane) -> dict:
     names = [o.name for o in sess.get_outputs()]
-    return dict(zip(names, sess.run(None, {"images": images, "P2": P2}), strict=True))
+    feed = {"images": images, "P2": P2, "plane": plane}
+    return dict(zip(names, sess.run(None, feed), strict=True))
 
 
 def rel_error(a, b) -> float:
@@ -97,13 +109,14 @@ def case(kind: str, variant: str):
         variables = random_variables(model, config, depth_builders.init_variables)
         size, graph = (d.height, d.eval_width), depth_graph
     sess = session(graph(model, variables, size, 17))
-    apply = jax.jit(lambda v, x, P: model.apply(v, x, P, train=False))
+    apply = jax.jit(lambda v, x, P, plane: model.apply(v, x, P, train=False, plane=plane))
     return model, variables, size, sess, apply
 
 
 def inputs(size: tuple[int, int], scale: float = 1.0):
+    """Two images, their projections and tilted ground planes."""
     images = np.random.default_rng(0).normal(size=(2, *size, 3)).astype(np.float32)
-    return images, projections(2, *size, scale=scale)
+    return images, projections(2, *size, scale=scale), planes(2)
 
 
 DETECTOR_VARIANTS = {
@@ -128,10 +141,10 @@ def test_detector_export_matches_jit(variant):
     """Batch 2 against the jitted model, and batch 1 against its first image (the Flax model
     in eval mode treats images independently), so one compile serves both."""
     model, variables, size, sess, apply = case("detect3d", variant)
-    images, P2 = inputs(size)
-    ref = apply(variables, images, P2)
+    images, P2, plane = inputs(size)
+    ref = apply(variables, images, P2, plane)
     for batch in (2, 1):
-        out = run(sess, images[:batch], P2[:batch])
+        out = run(sess, images[:batch], P2[:batch], plane[:batch])
         assert set(out) == {"cls_logits", "sign_logits", "reg"}
         for key, value in out.items():
             assert value.shape == ref[key][:batch].shape, key
@@ -141,31 +154,37 @@ def test_detector_export_matches_jit(variant):
 @pytest.mark.parametrize("variant", list(DEPTH_VARIANTS))
 def test_depth_export_matches_jit(variant):
     model, variables, size, sess, apply = case("depth", variant)
-    images, P2 = inputs(size)
-    ref = apply(variables, images, P2)
+    images, P2, plane = inputs(size)
+    ref = apply(variables, images, P2, plane)
     for batch in (2, 1):
-        out = run(sess, images[:batch], P2[:batch])
+        out = run(sess, images[:batch], P2[:batch], plane[:batch])
         assert out["log_depth"].shape == (batch, *size)
         assert rel_error(out["log_depth"], ref["log_depth"]["scale_1"][:batch]) < RTOL
         assert rel_error(out["depth"], ref["depth"][:batch]) < RTOL
 
 
+@pytest.mark.parametrize("live", ["P2", "plane"])
 @pytest.mark.parametrize("kind", ["detect3d", "depth"])
-def test_p2_is_a_live_input(kind):
-    """Another calibration changes the exported outputs exactly as it changes the Flax ones."""
+def test_p2_and_plane_are_live_inputs(kind, live):
+    """Another calibration, or the level plane instead of the tilted ones, changes the exported
+    outputs exactly as it changes the Flax ones."""
     model, variables, size, sess, apply = case(kind, "gac")
-    images, Pa = inputs(size)
-    _, Pb = inputs(size, scale=1.4)
+    images, Pa, plane_a = inputs(size)
+    Pb, plane_b = Pa, plane_a
+    if live == "P2":
+        _, Pb, _ = inputs(size, scale=1.4)
+    else:
+        plane_b = np.tile(np.float32([0.0, -1.0, 0.0, model.camera_height]), (2, 1))
     key = "reg" if kind == "detect3d" else "log_depth"
 
     def pick(out):
         return out[key] if kind == "detect3d" or key not in out else out[key]["scale_1"]
 
-    ref_change = np.asarray(pick(apply(variables, images, Pb))) - np.asarray(
-        pick(apply(variables, images, Pa))
+    ref_change = np.asarray(pick(apply(variables, images, Pb, plane_b))) - np.asarray(
+        pick(apply(variables, images, Pa, plane_a))
     )
-    out_change = run(sess, images, Pb)[key] - run(sess, images, Pa)[key]
-    # the calibration matters (far above float32 noise, ~1e-6 here) ...
+    out_change = run(sess, images, Pb, plane_b)[key] - run(sess, images, Pa, plane_a)[key]
+    # the input matters (far above float32 noise, ~1e-6 here) ...
     assert np.abs(ref_change).max() > 3e-4
     assert rel_error(out_change, ref_change) < 1e-2  # ... and the same in both
 
@@ -286,8 +305,8 @@ def test_winograd_rewrite_of_the_depth_net_matches_jit():
     )
     onnx.checker.check_model(proto)
     sess = session(proto)
-    images, P2 = inputs(size)
-    ref = apply(variables, images, P2)
+    images, P2, plane = inputs(size)
+    ref = apply(variables, images, P2, plane)
     for batch in (2, 1):
-        out = run(sess, images[:batch], P2[:batch])
+        out = run(sess, images[:batch], P2[:batch], plane[:batch])
         assert rel_error(out["log_depth"], ref["log_depth"]["scale_1"][:batch]) < RTOL

@@ -48,7 +48,7 @@ EXACT = PostprocessConfig(score_threshold=0.5, nms_iou=1.0, hill_climbing=False)
 class FakeDetector:
     """``apply`` returns the outputs passed as ``variables`` (the predict fn's first argument)."""
 
-    def apply(self, variables, images, P2, train):
+    def apply(self, variables, images, P2, train, plane=None):
         return variables
 
 
@@ -312,11 +312,13 @@ def test_predict_compiles_once_per_input_shape(setup):
         }
 
     P2 = np.array([[721.5, 0, 609.6, 44.9], [0, 721.5, 72.9, 0.2], [0, 0, 1, 0.003]], np.float32)
-    for _ in range(3):
-        out = predict(outputs(2), np.zeros((2, 8, 8, 3), np.float32), np.stack([P2, P2 * 0.5]))
+    images = np.zeros((2, 8, 8, 3), np.float32)
+    for pitch in (0.0, 0.1, 0.35):  # per-frame planes are inputs: one trace
+        plane = np.float32([[0, -np.cos(pitch), -np.sin(pitch), 1.65], [0, -1, 0, 1.5]])
+        out = predict(outputs(2), images, np.stack([P2, P2 * 0.5]), plane)
     assert predict._cache_size() == 1
     assert out["scores"].shape == (2, 10)
-    predict(outputs(1), np.zeros((1, 8, 8, 3), np.float32), P2[None])
+    predict(outputs(1), np.zeros((1, 8, 8, 3), np.float32), P2[None], plane[:1])
     assert predict._cache_size() == 2
 
 

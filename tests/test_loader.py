@@ -29,6 +29,7 @@ M = 16
 DTYPES = {
     "image": np.float32,
     "P2": np.float32,
+    "plane": np.float32,
     "image_transform": np.float32,
     "original_size": np.int32,
     "gt_mask": np.bool_,
@@ -98,6 +99,7 @@ def test_batch_contract(source):
     shapes = {
         "image": (B, 48, 160, 3),
         "P2": (B, 3, 4),
+        "plane": (B, 4),
         "image_transform": (B, 3, 3),
         "original_size": (B, 2),
         "gt_boxes": (B, M, 4),
@@ -111,6 +113,8 @@ def test_batch_contract(source):
         if key in DTYPES:
             assert batch[key].dtype == DTYPES[key], key
     assert batch["frame_id"].dtype.kind == "U"
+    # frames without planes/ files: the level plane of the converter's camera height
+    np.testing.assert_array_equal(batch["plane"], np.tile(np.float32([0, -1, 0, 1.65]), (B, 1)))
     # padding: mask marks exactly the kept objects; padded classes are -1
     _, indices = loader.step_indices(0)
     for row, i in enumerate(indices):
@@ -121,6 +125,15 @@ def test_batch_contract(source):
         assert (batch["gt_class"][row, n:] == -1).all() and (batch["gt_class"][row, :n] >= 0).all()
         assert not batch["gt_boxes"][row, n:].any()
         assert tuple(batch["original_size"][row]) == source[int(i)]["original_size"]
+
+
+def test_plane_is_the_samples_else_the_converters_level_plane(source):
+    sample = source[1]
+    out = DetectionArrays(CLASSES, 8, camera_height=1.4)(sample)
+    np.testing.assert_array_equal(out["plane"], np.float32([0, -1, 0, 1.4]))
+    tilted = np.array([0.0, -0.94, -0.342, 1.7])
+    out = DetectionArrays(CLASSES, 8, camera_height=1.4)(dict(sample, plane=tilted))
+    np.testing.assert_array_equal(out["plane"], tilted.astype(np.float32))
 
 
 def test_detection_arrays_values(source):

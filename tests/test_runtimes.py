@@ -91,6 +91,7 @@ def test_export_cli_writes_a_described_checksummed_model(tiny_detect3d_workdir, 
     assert export_cli.main([str(a) for a in argv]) == 0
     meta = artifact.read_export(out)  # checks the sha256
     assert meta["source"]["step"] == 2 and meta["inputs"]["P2"] == ["batch", 3, 4]
+    assert meta["inputs"]["plane"] == ["batch", 4]
     assert meta["decoding"]["num_anchors"] > 0 and meta["libraries"]["onnx"] != "not installed"
     assert not list(out.glob(".*tmp"))  # atomic writes leave no temporary file
 
@@ -150,7 +151,9 @@ def test_openvino_float32_matches_onnxruntime(onnx_run):
     P2 = np.tile(
         np.array([[700, 0, 128, 45], [0, 700, 16, 0], [0, 0, 1, 0]], np.float32), (2, 1, 1)
     )
-    a, b = ort_net(images, P2), ov_net(images, P2)
+    plane = np.float32([[0.0, -0.94, -0.34, 1.6], [0.0, -1.0, 0.0, 1.65]])  # pitched, level
+    plane[:, :3] /= np.linalg.norm(plane[:, :3], axis=1, keepdims=True)
+    a, b = ort_net(images, P2, plane), ov_net(images, P2, plane)
     for key in runtimes.DETECTOR_OUTPUTS:
         scale = np.abs(a[key]).max()
         assert np.abs(a[key] - b[key]).max() <= 1e-4 * scale, key

@@ -14,7 +14,7 @@ import pytest
 
 from gac_jax.data import tfds_builders
 from gac_jax.data.files import KittiFormatError
-from gac_jax.data.kitti import KittiObjects, read_split, write_split
+from gac_jax.data.kitti import KittiObjects, read_split, write_plane, write_split
 from gac_jax.data.sources import (
     KittiDepthSource,
     KittiObjectSource,
@@ -52,6 +52,7 @@ def prepared(kitti_object_root, kitti_samples, tmp_path_factory):
     ids = read_split(kitti_object_root / "ImageSets" / "labeled.txt")
     root = copy_object_root(kitti_object_root, base / "kitti", ids, right=True)
     write_split(root / "ImageSets" / "val.txt", VAL)
+    write_plane(root / "training" / "planes" / f"{VAL[0]}.txt", [0.007, -0.9998, -0.0198, 1.68])
     out = base / "prepared"
     obj = tfds_builders.prepare("object", root, out)
     depth = tfds_builders.prepare("depth", kitti_samples / "depth", out)
@@ -93,6 +94,7 @@ def test_object_round_trip(prepared, split):
         assert_same_sample(tfds_src[i], folder[i])
     if split == "val":
         assert [tfds_src[i]["frame_id"] for i in range(3)] == VAL
+        assert "plane" in tfds_src[0] and "plane" not in tfds_src[1]  # read where present
 
 
 def test_depth_round_trip(prepared, kitti_samples):
@@ -146,6 +148,12 @@ def test_builder_rejects_bad_files(prepared, tmp_path, capsys):
     assert tfds_builders.main(["object", "--src", str(root), "--out", str(tmp_path / "o2")]) == 1
     assert str(label) in capsys.readouterr().err
     label.unlink()
+    plane = root / "training" / "planes" / "000001.txt"
+    plane.parent.mkdir()
+    plane.write_text("1\n")  # one number: not a plane
+    with raises_naming(plane, 1):
+        tfds_builders.prepare("object", root, tmp_path / "out4")
+    plane.unlink()
     (root / "training" / "image_2" / "000001.png").write_bytes(b"GIF89a")
     with raises_naming(root / "training" / "image_2" / "000001.png"):
         tfds_builders.prepare("object", root, tmp_path / "out3")

@@ -81,6 +81,7 @@ def planar_batch(batch_size: int, height: int = 64, width: int = 224) -> dict:
     return {  # the loader's depth batch layout (frame ids aside)
         "image": images,
         "P2": np.repeat(P[None], batch_size, 0),
+        "plane": np.tile(geometry.level_plane(1.65).astype(np.float32), (batch_size, 1)),
         "depth": np.where(keep, depth[None], 0.0).astype(np.float32),
         "image_transform": np.repeat(np.eye(3, dtype=np.float32)[None], batch_size, 0),
         "original_size": np.full((batch_size, 2), (height, width), np.int32),
@@ -99,9 +100,11 @@ def test_train_step_compiles_once_and_learns_a_fixed_batch(depth_root, tmp_path)
         depth_builders.init_variables(model, config, 0), tx, 0, mesh
     )
     step = depth.make_train_step(model, tx, depth_builders.loss_options(config), mesh, sharding)
-    batch = parallel.to_global(planar_batch(2), mesh)
+    host = planar_batch(2)
     losses = []
-    for _ in range(12):
+    for i in range(12):  # the plane is an input: a new one per step compiles nothing new
+        plane = host["plane"] + np.float32([0, 0, 0, 0.002 * i])
+        batch = parallel.to_global(dict(host, plane=plane), mesh)
         state, metrics = step(state, batch)
         losses.append(float(metrics["loss"]))
     assert step._cache_size() == 1

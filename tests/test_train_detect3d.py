@@ -108,6 +108,8 @@ def test_train_step_compiles_once_and_two_devices_match_one(kitti_object_root, t
         loader = Loader(source, B.train_transform(c), DetectionArrays(("Car",), 32, True),
                         batch_size=4, seed=0)
         batches = [loader.load_batch(s) for s in range(2)]
+        # the second batch's frames have pitched planes: an input, not a retrace
+        batches[1]["plane"][:] = np.float32([0.0, -0.99, -0.141, 1.6])  # unit normal, 8 deg
         v = jax.tree.map(np.asarray, B.init_variables(model, c, 0))  # host copy: steps donate
         results = []
         for devices in (jax.devices()[:1], jax.devices()):

@@ -201,6 +201,7 @@ def make_evaluator(config, model, constants, root: Path, worker_count: int) -> D
         filter_options=filter_options(config),
         use_ground_filter=config.anchors.filter,
         worker_count=worker_count,
+        camera_height=config.model.gac.camera_height,
     )
 
 

@@ -9,7 +9,9 @@
 its KITTI calibration file (``P2: ...`` line; ``--camera 3`` uses ``P3``):
 ``--calib FILE`` serves every image, ``--calib DIR`` holds ``<stem>.txt`` per
 image; without ``--calib`` the KITTI layout is assumed (``<images>/../calib/<stem>.txt``,
-else ``<stem>.txt`` beside the image). Images of any size go through the model's
+else ``<stem>.txt`` beside the image). An image whose KITTI layout has a ground-plane file
+(``<images>/../planes/<stem>.txt``) is predicted with that plane, the others with the config's
+level camera (``model.gac.camera_height``). Images of any size go through the model's
 test transform (crop the top rows, resize to the input height, crop/pad the
 width); results are in original-image pixels.
 
@@ -117,7 +119,7 @@ class ImageSource:
 
     def __getitem__(self, i: int) -> dict:
         from gac_jax.data.files import KittiFormatError, read_image
-        from gac_jax.data.kitti import read_calib
+        from gac_jax.data.kitti import read_calib, read_plane
         from gac_jax.data.sources import new_sample
 
         calib = read_calib(self.calibs[i])
@@ -134,7 +136,9 @@ class ImageSource:
                 )
             if round(w * height / (h - crop_top)) > width:
                 self.cut_off.add(self.frame_ids[i])
-        return new_sample(self.frame_ids[i], self.camera, image, P)
+        plane = self.images[i].parent.parent / "planes" / f"{self.images[i].stem}.txt"
+        extra = {"plane": read_plane(plane)} if plane.is_file() else {}
+        return new_sample(self.frame_ids[i], self.camera, image, P, **extra)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -6,6 +6,7 @@ Layout of a KITTI object root (real or generated)::
     ROOT/training/image_3/NNNNNN.png   right colour image (optional)
     ROOT/training/calib/NNNNNN.txt     P0..P3, R0_rect, Tr_velo_to_cam
     ROOT/training/label_2/NNNNNN.txt   15 columns per object (DontCare included)
+    ROOT/training/planes/NNNNNN.txt    ground plane (optional; the AVOD-style files)
     ROOT/ImageSets/{train,val,...}.txt frame ids, one per line
 
 Result files use the label format plus a 16th ``score`` column.
@@ -20,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gac_jax import geometry
 from gac_jax.data.files import KittiFormatError, atomic_write, read_bytes
 
 CALIB_SHAPES = {
@@ -94,6 +96,63 @@ def format_calib(calib: Calibration) -> str:
 def write_calib(path: str | os.PathLike, calib: Calibration) -> None:
     with atomic_write(path) as f:
         f.write(format_calib(calib))
+
+
+def parse_plane(text: str, path: str | os.PathLike = "<plane>") -> np.ndarray:
+    """Parses a KITTI-format ``planes/NNNNNN.txt`` file -> (4,) float64 normalised plane.
+
+    The file (as AVOD and others distribute for KITTI) is::
+
+        # Plane
+        Width 4
+        Height 1
+        -7.051729e-03 -9.997791e-01 -1.980151e-02 1.680367e+00
+
+    ``a x + b y + c z + d = 0`` in the rectified camera frame. Comment (``#``) lines and the
+    ``Width 4`` / ``Height 1`` header are optional; exactly one row of 4 numbers is required.
+    The result is scaled to a unit normal pointing up (:func:`gac_jax.geometry.normalize_plane`:
+    ``b < 0``, ``d`` = camera height), and the camera must be above the plane (``d > 0``).
+    """
+    rows = []
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        fields = raw.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        if fields[0] in ("Width", "Height"):
+            want = "4" if fields[0] == "Width" else "1"
+            if fields[1:] != [want]:
+                raise KittiFormatError(path, f"expected '{fields[0]} {want}', got {raw!r}", lineno)
+            continue
+        if len(fields) != 4 or not all(_is_float(f) for f in fields):
+            raise KittiFormatError(path, f"expected 4 numbers 'a b c d', got {raw[:60]!r}", lineno)
+        rows.append((lineno, np.array([float(f) for f in fields])))
+    if len(rows) != 1:
+        raise KittiFormatError(path, f"expected one plane row 'a b c d', found {len(rows)}")
+    lineno, plane = rows[0]
+    try:
+        plane = geometry.normalize_plane(plane)
+    except ValueError as e:
+        raise KittiFormatError(path, str(e), lineno) from None
+    if not plane[3] > 0:
+        raise KittiFormatError(
+            path, f"the camera is not above the plane (d = {plane[3]:g})", lineno
+        )
+    return plane
+
+
+def read_plane(path: str | os.PathLike) -> np.ndarray:
+    return parse_plane(read_bytes(path, "plane file").decode("utf-8", "replace"), path)
+
+
+def format_plane(plane: np.ndarray) -> str:
+    """Text of a ``planes/NNNNNN.txt`` file for a (4,) plane (the AVOD header included)."""
+    values = " ".join(f"{v:.12e}" for v in np.asarray(plane, np.float64).reshape(4))
+    return f"# Plane\nWidth 4\nHeight 1\n{values}\n"
+
+
+def write_plane(path: str | os.PathLike, plane: np.ndarray) -> None:
+    with atomic_write(path) as f:
+        f.write(format_plane(plane))
 
 
 def _is_float(s: str) -> bool:
@@ -336,6 +395,9 @@ class KittiObjectLayout:
 
     def label(self, frame_id: str) -> Path:
         return self.frames_dir / "label_2" / f"{frame_id}.txt"
+
+    def plane(self, frame_id: str) -> Path:
+        return self.frames_dir / "planes" / f"{frame_id}.txt"
 
     def split_file(self, split: str) -> Path:
         return self.root / "ImageSets" / f"{split}.txt"

@@ -17,6 +17,7 @@ Detection batch (``M = max_objects``; padding rows have ``gt_mask`` False and
 ``gt_class`` -1, other fields 0)::
 
     image (B,H,W,3) f32   P2 (B,3,4) f32   image_transform (B,3,3) f32
+    plane (B,4) f32 ground plane (a, b, c, d), camera frame, unit upward normal
     original_size (B,2) i32 (H0, W0)       frame_id (B,) str (host only)
     gt_mask (B,M) bool    gt_class (B,M) i32 index into class_names
     gt_boxes (B,M,4) f32 xyxy              gt_center (B,M,2) f32 projected 3D-box centre
@@ -24,8 +25,12 @@ Detection batch (``M = max_objects``; padding rows have ``gt_mask`` False and
     gt_dims (B,M,3) f32 (h,w,l)  gt_alpha (B,M)  gt_location (B,M,3) bottom centre
     gt_rotation_y (B,M)  gt_truncated (B,M)  gt_occluded (B,M) i32
 
-Depth batch: ``image``, ``P2``, ``depth`` (B,H,W) f32, ``image_transform``,
+Depth batch: ``image``, ``P2``, ``plane``, ``depth`` (B,H,W) f32, ``image_transform``,
 ``original_size``, ``frame_id``.
+
+``plane`` is the sample's (a frame's ``planes/`` file, moved by the transforms) or, for a
+frame without one, the level plane ``(0, -1, 0, camera_height)`` of the array converter
+(the config's ``model.gac.camera_height``).
 """
 
 from __future__ import annotations
@@ -42,10 +47,12 @@ import numpy as np
 from gac_jax import geometry
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.data.worker_lifetime import Owner, grain_worker_init
+from gac_jax.geometry import DEFAULT_CAMERA_HEIGHT, level_plane
 
 DETECTION_KEYS = (
     "image",
     "P2",
+    "plane",
     "image_transform",
     "original_size",
     "gt_mask",
@@ -61,13 +68,21 @@ DETECTION_KEYS = (
     "gt_occluded",
     "frame_id",
 )
-DEPTH_KEYS = ("image", "P2", "depth", "image_transform", "original_size", "frame_id")
+DEPTH_KEYS = ("image", "P2", "plane", "depth", "image_transform", "original_size", "frame_id")
 
 
-def _common_arrays(sample: dict) -> dict[str, np.ndarray]:
+def plane_array(sample: dict, camera_height: float = DEFAULT_CAMERA_HEIGHT) -> np.ndarray:
+    """(4,) float32 ground plane of a sample: its ``plane``, else the level one of
+    ``camera_height``."""
+    plane = sample.get("plane")
+    return np.asarray(level_plane(camera_height) if plane is None else plane, np.float32)
+
+
+def _common_arrays(sample: dict, camera_height: float) -> dict[str, np.ndarray]:
     return {
         "image": np.asarray(sample["image"], np.float32),
         "P2": np.asarray(sample["P2"], np.float32),
+        "plane": plane_array(sample, camera_height),
         "image_transform": np.asarray(sample["image_transform"], np.float32),
         "original_size": np.asarray(sample["original_size"], np.int32).reshape(2),
         "frame_id": np.asarray(sample["frame_id"], dtype=str),
@@ -75,7 +90,11 @@ def _common_arrays(sample: dict) -> dict[str, np.ndarray]:
 
 
 def detection_arrays(
-    sample: dict, class_names: Sequence[str], max_objects: int, truncate: bool = False
+    sample: dict,
+    class_names: Sequence[str],
+    max_objects: int,
+    truncate: bool = False,
+    camera_height: float = DEFAULT_CAMERA_HEIGHT,
 ) -> dict[str, np.ndarray]:
     """One sample's detection arrays (the batch contract without the batch axis).
 
@@ -112,7 +131,7 @@ def detection_arrays(
         out[:n] = x
         return out
 
-    out = _common_arrays(sample)
+    out = _common_arrays(sample, camera_height)
     out.update(
         gt_mask=pad(np.ones(n, bool), bool, False),
         gt_class=pad([class_names.index(t) for t in objects.type], np.int32, -1),
@@ -129,11 +148,13 @@ def detection_arrays(
     return out
 
 
-def depth_arrays(sample: dict) -> dict[str, np.ndarray]:
+def depth_arrays(
+    sample: dict, camera_height: float = DEFAULT_CAMERA_HEIGHT
+) -> dict[str, np.ndarray]:
     """One sample's depth-batch arrays (``sample`` must have ``'depth'``)."""
     if "depth" not in sample:
         raise ValueError(f"frame {sample['frame_id']} has no depth map")
-    out = _common_arrays(sample)
+    out = _common_arrays(sample, camera_height)
     out["depth"] = np.asarray(sample["depth"], np.float32)
     return out
 
@@ -145,17 +166,22 @@ class DetectionArrays:
     class_names: tuple[str, ...]
     max_objects: int
     truncate: bool = False
+    camera_height: float = DEFAULT_CAMERA_HEIGHT  # the plane of frames without one
 
     def __call__(self, sample: dict) -> dict[str, np.ndarray]:
-        return detection_arrays(sample, self.class_names, self.max_objects, self.truncate)
+        return detection_arrays(
+            sample, self.class_names, self.max_objects, self.truncate, self.camera_height
+        )
 
 
 @dataclasses.dataclass(frozen=True)
 class DepthArrays:
     """Picklable ``sample -> arrays`` for :class:`Loader` (see :func:`depth_arrays`)."""
 
+    camera_height: float = DEFAULT_CAMERA_HEIGHT  # the plane of frames without one
+
     def __call__(self, sample: dict) -> dict[str, np.ndarray]:
-        return depth_arrays(sample)
+        return depth_arrays(sample, self.camera_height)
 
 
 def collate(items: Sequence[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:

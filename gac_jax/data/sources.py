@@ -9,7 +9,10 @@ folder and its prepared dataset give identical samples at every index.
 Sample keys (see the project brief): ``frame_id``, ``camera``, ``image`` (H, W, 3)
 uint8 RGB, ``P2`` (3, 4) float64 projection of this image, ``image_transform``
 (identity), ``original_size`` (H, W), and ``objects`` (object sources with
-labels) or ``depth`` (H, W) float32 metres, 0 = invalid (depth sources).
+labels) or ``depth`` (H, W) float32 metres, 0 = invalid (depth sources); ``plane`` (4,)
+float64 ground plane in the rectified camera frame when the frame has a
+``planes/NNNNNN.txt`` file (:func:`gac_jax.data.kitti.parse_plane`; absent otherwise, and
+the loader then uses the config's level plane).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from gac_jax.data.kitti import (
     KittiObjects,
     parse_calib,
     parse_label,
+    parse_plane,
     read_split,
 )
 
@@ -80,8 +84,10 @@ def object_sample_from_bytes(
     calib: str,
     label: str | None,
     where: dict[str, str | os.PathLike],
+    plane: str | None = None,
 ) -> dict:
-    """Decodes one object frame. ``where`` names the image/calib/label origin for error messages."""
+    """Decodes one object frame. ``where`` names the image/calib/label(/plane) origin for error
+    messages; ``plane`` is the text of its planes file, if it has one."""
     cal = parse_calib(calib, where["calib"])
     P = cal.P2 if camera == 2 else cal.P3
     if P is None:
@@ -93,6 +99,8 @@ def object_sample_from_bytes(
         if camera == 3:
             objects = right_view_objects(objects, P, img.shape[:2])
         extra["objects"] = objects
+    if plane is not None:
+        extra["plane"] = parse_plane(plane, where["plane"])
     return new_sample(frame_id, camera, img, P, **extra)
 
 
@@ -195,10 +203,13 @@ class KittiObjectSource:
             "image": self.layout.image(frame_id, camera),
             "calib": self.layout.calib(frame_id),
             "label": self.layout.label(frame_id),
+            "plane": self.layout.plane(frame_id),
         }
-        label = None
+        label = plane = None
         if self.with_labels:
             label = read_bytes(where["label"], "label file").decode("utf-8", "replace")
+        if where["plane"].is_file():
+            plane = read_bytes(where["plane"], "plane file").decode("utf-8", "replace")
         return object_sample_from_bytes(
             frame_id,
             camera,
@@ -206,6 +217,7 @@ class KittiObjectSource:
             read_bytes(where["calib"], "calibration file").decode("utf-8", "replace"),
             label,
             where,
+            plane,
         )
 
 
@@ -386,6 +398,7 @@ class TfdsObjectSource:
             "image": f"{base}/image_{camera}",
             "calib": f"{base}/calib",
             "label": f"{base}/label_2",
+            "plane": f"{base}/planes",
         }
         image = rec[f"image_{camera}"]
         if not image:
@@ -397,7 +410,10 @@ class TfdsObjectSource:
                     where["label"], "prepared dataset has no label for this frame"
                 )
             label = _text(rec["label"])
-        return object_sample_from_bytes(frame_id, camera, image, _text(rec["calib"]), label, where)
+        plane = _text(rec["plane"]) if "plane" in rec else ""  # datasets before 1.1.0 have none
+        return object_sample_from_bytes(
+            frame_id, camera, image, _text(rec["calib"]), label, where, plane or None
+        )
 
 
 class TfdsDepthSource:

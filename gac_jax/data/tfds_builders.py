@@ -11,7 +11,8 @@ which needs neither TensorFlow nor this module.
 * ``gac_kitti_object``: one split per ``ImageSets/<name>.txt`` (or ``frames``: every
   calib file when there are none). Features: ``frame_id``, ``image_2``,
   ``image_3`` (empty bytes when absent), ``calib``, ``label`` (empty when
-  absent), ``has_label``.
+  absent), ``has_label``, ``plane`` (the ``planes/`` file's text, empty when absent;
+  version 1.1.0, older datasets have none).
 * ``gac_kitti_depth``: one split per (folder under ``data_depth_annotated``,
   camera), named ``<split>_image_0<camera>``, frames sorted by (drive, frame).
   Features: ``frame_id`` (``<drive>/<frame>``), ``camera``, ``image``, ``depth``
@@ -41,7 +42,13 @@ import tensorflow_datasets as tfds
 
 from gac_jax.data import kitti_depth
 from gac_jax.data.files import KittiFormatError, read_bytes
-from gac_jax.data.kitti import KittiObjectLayout, parse_calib, parse_label, read_split
+from gac_jax.data.kitti import (
+    KittiObjectLayout,
+    parse_calib,
+    parse_label,
+    parse_plane,
+    read_split,
+)
 from gac_jax.data.sources import ALL_FRAMES, DEPTH_DATASET, OBJECT_DATASET, depth_split_name
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -61,8 +68,11 @@ def _bytes_feature():
 class GacKittiObject(tfds.core.GeneratorBasedBuilder):
     """KITTI 3D-object frames as raw bytes (see module docstring)."""
 
-    VERSION = tfds.core.Version("1.0.0")
-    RELEASE_NOTES = {"1.0.0": "Raw image/calib/label bytes per frame, in split-file order."}
+    VERSION = tfds.core.Version("1.1.0")
+    RELEASE_NOTES = {
+        "1.0.0": "Raw image/calib/label bytes per frame, in split-file order.",
+        "1.1.0": "Plus the planes/ file text (empty when absent).",
+    }
 
     def __init__(
         self,
@@ -88,6 +98,7 @@ class GacKittiObject(tfds.core.GeneratorBasedBuilder):
                     "calib": tfds.features.Text(),
                     "label": tfds.features.Text(),
                     "has_label": tfds.features.Scalar(dtype=np.bool_),
+                    "plane": tfds.features.Text(),
                 }
             ),
             disable_shuffling=True,
@@ -123,6 +134,10 @@ class GacKittiObject(tfds.core.GeneratorBasedBuilder):
             if label_path.is_file():
                 label = read_bytes(label_path, "label file").decode("utf-8", "replace")
                 parse_label(label, label_path, with_score=False)
+            plane_path, plane = lay.plane(frame_id), ""
+            if plane_path.is_file():
+                plane = read_bytes(plane_path, "plane file").decode("utf-8", "replace")
+                parse_plane(plane, plane_path)
             right = lay.image(frame_id, 3)
             yield (
                 key,
@@ -133,6 +148,7 @@ class GacKittiObject(tfds.core.GeneratorBasedBuilder):
                     "calib": calib,
                     "label": label,
                     "has_label": label_path.is_file(),
+                    "plane": plane,
                 },
             )
 

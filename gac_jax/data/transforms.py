@@ -19,7 +19,11 @@ image_transform``), which therefore maps ORIGINAL pixels to current ones.
   reference scales ``P2`` by ``s`` without the half-pixel term, a < 0.2 px shift);
 * crop/pad on the right: identity; crop of ``c`` columns on the left: ``u' = u - c``;
 * horizontal flip of width ``W``: ``u' = W - 1 - u``, and the 3D scene is mirrored
-  (``x -> -x``) so ``P2' = F @ P2 @ diag(-1, 1, 1, 1)``.
+  (``x -> -x``) so ``P2' = F @ P2 @ diag(-1, 1, 1, 1)`` and the ground ``plane``
+  ``(a, b, c, d)`` becomes ``(-a, b, c, d)``.
+
+Crops and resizes change pixels only, not the 3D camera frame, so they leave the optional
+``plane`` (4,) (camera frame, :func:`gac_jax.geometry.normalize_plane`) as it is.
 
 Random transforms draw from ``sample['rng']`` (a ``np.random.Generator`` the
 loader seeds from (seed, epoch, index)) and fall back to their own generator
@@ -270,7 +274,8 @@ def mirror_objects(objects: KittiObjects) -> KittiObjects:
 class HorizontalFlip:
     """Mirrors image, depth and the 3D scene (``x -> -x``).
 
-    ``u' = W - 1 - u`` and ``P2' = F @ P2 @ diag(-1, 1, 1, 1)`` with ``F`` that pixel flip.
+    ``u' = W - 1 - u`` and ``P2' = F @ P2 @ diag(-1, 1, 1, 1)`` with ``F`` that pixel flip; a
+    ground ``plane`` ``(a, b, c, d)`` mirrors to ``(-a, b, c, d)``.
 
     Projecting mirrored labels through ``P2'`` equals flipping the original
     projection, and the optical centre mirrors too, so alpha (relative to the
@@ -282,6 +287,8 @@ class HorizontalFlip:
         depth = np.ascontiguousarray(sample["depth"][:, ::-1]) if "depth" in sample else None
         out = apply_affine(sample, flip_affine(image.shape[1]), image, depth)
         out["P2"] = out["P2"] @ np.diag([-1.0, 1.0, 1.0, 1.0])
+        if "plane" in out:
+            out["plane"] = np.asarray(out["plane"], np.float64) * np.array([-1.0, 1.0, 1.0, 1.0])
         if out.get("objects") is not None and len(out["objects"]):
             out["objects"] = mirror_objects(out["objects"])
         return out

@@ -151,4 +151,4 @@ def runtime_predictor(
         outputs=DEPTH_OUTPUTS,
         image_size=(config.data.height, config.data.eval_width),
     )
-    return RuntimeDepthPredictor(network)
+    return RuntimeDepthPredictor(network, model.camera_height)

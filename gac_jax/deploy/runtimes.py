@@ -28,12 +28,13 @@ import jax
 import numpy as np
 
 from gac_jax.data.files import KittiFormatError
+from gac_jax.geometry import DEFAULT_CAMERA_HEIGHT, level_plane
 
 RUNTIMES = ("jax", "onnxruntime", "openvino")
 PRECISIONS = ("f32", "bf16")
 DETECTOR_OUTPUTS = ("cls_logits", "sign_logits", "reg")
 DEPTH_OUTPUTS = ("log_depth",)
-INPUTS = ("images", "P2")
+INPUTS = ("images", "P2", "plane")
 EXTRA_HINT = "pip install 'gac-jax[deploy]'"
 
 
@@ -123,7 +124,8 @@ class OnnxNetwork:
       threads: CPU threads (default: every usable core).
       batch_size: fixes the batch dimension (OpenVINO compiles a static shape), or None.
 
-    ``__call__(images (B,H,W,3) float32, P2 (B,3,4) float32)`` returns ``{name: ndarray}``.
+    ``__call__(images (B,H,W,3) float32, P2 (B,3,4) float32, plane (B,4) float32)`` returns
+    ``{name: ndarray}``.
 
     Raises:
       KittiFormatError: the file cannot be loaded, or its inputs/outputs do not fit, naming it.
@@ -217,6 +219,7 @@ class OnnxNetwork:
                 {
                     "images": [batch_size, *shapes["images"][1:]],
                     "P2": [batch_size, 3, 4],
+                    "plane": [batch_size, 4],
                 }
             )
         config = {
@@ -235,10 +238,13 @@ class OnnxNetwork:
                 self._ports[name] = port
         return shapes, list(self._ports)
 
-    def __call__(self, images: np.ndarray, P2: np.ndarray) -> dict[str, np.ndarray]:
+    def __call__(
+        self, images: np.ndarray, P2: np.ndarray, plane: np.ndarray
+    ) -> dict[str, np.ndarray]:
         feed = {
             "images": np.ascontiguousarray(images, np.float32),
             "P2": np.ascontiguousarray(P2, np.float32),
+            "plane": np.ascontiguousarray(plane, np.float32),
         }
         if self.runtime == "onnxruntime":
             values = self._session.run(list(self.outputs), feed)
@@ -249,10 +255,11 @@ class OnnxNetwork:
 
 
 class RuntimeDetectionPredict:
-    """``predict(variables, images, P2) -> candidates`` like
+    """``predict(variables, images, P2, plane=None) -> candidates`` like
     :func:`gac_jax.detection.inference.make_predict_fn`, with the network in an :class:`OnnxNetwork`
     (``variables`` is ignored: the weights are in the file) and the jitted
-    :func:`~gac_jax.detection.inference.select_candidates` after it."""
+    :func:`~gac_jax.detection.inference.select_candidates` after it; ``plane`` None is the level
+    plane of ``filter_options['camera_height']``."""
 
     def __init__(
         self,
@@ -268,8 +275,9 @@ class RuntimeDetectionPredict:
 
         self.network = network
         options = dict(filter_options or {})
+        self.camera_height = options.get("camera_height", DEFAULT_CAMERA_HEIGHT)
 
-        def select(outputs, P2):
+        def select(outputs, P2, plane):
             return select_candidates(
                 outputs,
                 constants,
@@ -278,6 +286,7 @@ class RuntimeDetectionPredict:
                 options,
                 use_ground_filter=use_ground_filter,
                 score_threshold=score_threshold,
+                plane=plane,
             )
 
         self._select = jax.jit(select)
@@ -289,26 +298,35 @@ class RuntimeDetectionPredict:
         t0 = time.perf_counter()
         images = np.zeros((batch_size, *image_size, 3), np.float32)
         P2 = np.tile(np.eye(3, 4, dtype=np.float32), (batch_size, 1, 1))
-        outputs = self.network(images, P2)
-        self._select = self._select.lower(outputs, P2).compile()
+        plane = self._planes(None, batch_size)
+        outputs = self.network(images, P2, plane)
+        self._select = self._select.lower(outputs, P2, plane).compile()
         return time.perf_counter() - t0
 
-    def __call__(self, variables, images, P2) -> dict:
+    def _planes(self, plane, batch_size: int) -> np.ndarray:
+        if plane is None:
+            return np.tile(level_plane(self.camera_height).astype(np.float32), (batch_size, 1))
+        return np.asarray(plane, np.float32)
+
+    def __call__(self, variables, images, P2, plane=None) -> dict:
         del variables
-        return self._select(self.network(images, P2), np.asarray(P2, np.float32))
+        plane = self._planes(plane, len(images))
+        return self._select(self.network(images, P2, plane), np.asarray(P2, np.float32), plane)
 
 
 class RuntimeDepthPredictor:
     """A depth predictor (like :class:`~gac_jax.evaluation.depth_evaluator.NetworkPredictor`)
     over an exported depth network: ``__call__(batch)`` -> original-geometry depth maps."""
 
-    def __init__(self, network: OnnxNetwork):
+    def __init__(self, network: OnnxNetwork, camera_height: float = DEFAULT_CAMERA_HEIGHT):
         self.network = network
+        self.camera_height = camera_height  # the level plane of frames without one
 
     def __call__(self, batch: dict) -> list[np.ndarray]:
-        from gac_jax.evaluation.depth_evaluator import to_original_geometry
+        from gac_jax.evaluation.depth_evaluator import frame_planes, to_original_geometry
 
-        log_depth = self.network(batch["image"], batch["P2"])["log_depth"]
+        planes = frame_planes(batch, self.camera_height)
+        log_depth = self.network(batch["image"], batch["P2"], planes)["log_depth"]
         return [
             to_original_geometry(
                 log_depth[b], batch["image_transform"][b], batch["original_size"][b]

@@ -68,20 +68,23 @@ def select_candidates(
     *,
     use_ground_filter: bool = True,
     score_threshold: float | None = None,
+    plane: jax.Array | None = None,
 ) -> dict:
     """Network outputs -> the ``top_k`` best decoded candidates per image (jit-compatible).
 
     The part of :func:`make_predict_fn` after the network, shared with the exported
     runtimes (:mod:`gac_jax.deploy.runtimes`), which compute ``outputs`` (``cls_logits`` (B,N,K),
     ``sign_logits`` (B,N), ``reg`` (B,N,12)) outside JAX. ``top_k`` and
-    ``score_threshold`` as in :func:`make_predict_fn`; the result is its dict.
+    ``score_threshold`` as in :func:`make_predict_fn`; the result is its dict. ``plane``
+    (B, 4): each image's ground plane for the anchor filter (None: the level plane of
+    ``filter_options['camera_height']``).
     """
     filter_options = dict(filter_options or {})
     threshold = -1.0 if score_threshold is None else float(score_threshold)
     decoded = decode_outputs(outputs, constants)
     keep = decoded["prior_valid"]
     if use_ground_filter:
-        keep = keep & ground_mask_from_constants(constants, P2, **filter_options)
+        keep = keep & ground_mask_from_constants(constants, P2, plane, **filter_options)
     scores = jnp.where(keep, decoded["scores"], -1.0)
     num_candidates = jnp.sum(keep & (decoded["scores"] > threshold), axis=1)
     k = scores.shape[1] if top_k is None else min(top_k, scores.shape[1])
@@ -106,7 +109,7 @@ def make_predict_fn(
     filter_options: dict | None = None,
     use_ground_filter: bool = True,
 ) -> Callable:
-    """Builds ``predict(variables, images, P2) -> candidates`` (jitted).
+    """Builds ``predict(variables, images, P2, plane=None) -> candidates`` (jitted).
 
     Args:
       model: a :class:`gac_jax.models.detector.Detector`.
@@ -119,7 +122,8 @@ def make_predict_fn(
 
     Returns:
       A jitted function of ``variables`` ({'params', 'batch_stats'}), ``images``
-      (B, H, W, 3) float32 normalised and ``P2`` (B, 3, 4) giving a dict of
+      (B, H, W, 3) float32 normalised, ``P2`` (B, 3, 4) and ``plane`` (B, 4) (each image's
+      ground plane, a live input like ``P2``; None: the model's level plane) giving a dict of
       (B, K, ...) arrays, ``K = min(top_k, N)``, best score first: ``scores``,
       ``labels``, ``boxes`` (xyxy, input pixels), ``center`` (u, v), ``depth``
       (homogeneous), ``dims`` (h, w, l), ``alpha`` (padding candidates have score
@@ -131,8 +135,8 @@ def make_predict_fn(
         raise ValueError(f"top_k must be >= 1 or None (every anchor), got {top_k}")
 
     @jax.jit
-    def predict(variables, images, P2):
-        outputs = model.apply(variables, images, P2, train=False)
+    def predict(variables, images, P2, plane=None):
+        outputs = model.apply(variables, images, P2, train=False, plane=plane)
         return select_candidates(
             outputs,
             constants,
@@ -141,6 +145,7 @@ def make_predict_fn(
             filter_options,
             use_ground_filter=use_ground_filter,
             score_threshold=score_threshold,
+            plane=plane,
         )
 
     return predict

@@ -23,10 +23,13 @@ submission layout). A frame whose PNG exists is not predicted again (resume). Me
 computed on the written (quantised) values against the original-size ground truth, over its
 valid pixels only, so both routes give the same numbers.
 
-**Baseline.** :class:`GroundPlanePredictor` predicts, per image row, the depth of the
-ground plane ``camera_height`` below the camera (:func:`gac_jax.geometry.ground_depth`),
-clipped to ``max_depth`` (rows at and above the horizon: ``max_depth``): the prior the GAC
-network starts from, with no learning.
+**Baseline.** :class:`GroundPlanePredictor` predicts, per pixel, the depth of the frame's
+ground plane (its ``planes/`` file, else a level road ``camera_height`` below the camera;
+:func:`gac_jax.geometry.ground_depth`), clipped to ``max_depth`` (at and above the horizon:
+``max_depth``): the prior the GAC network starts from, with no learning.
+
+Batches carry ``plane`` (B, 4); a frame without one has NaN there, and each predictor uses
+its own level plane for it (:func:`frame_planes`).
 """
 
 from __future__ import annotations
@@ -49,7 +52,7 @@ from gac_jax.evaluation.viz import depth_panel, save_image
 
 MIN_WRITTEN_DEPTH = 1.0 / 256.0  # the smallest non-zero 16-bit value
 MAX_WRITTEN_DEPTH = 65535.0 / 256.0
-BASELINE_CAMERA_HEIGHT = 1.65
+BASELINE_CAMERA_HEIGHT = geometry.DEFAULT_CAMERA_HEIGHT  # frames without a planes/ file
 BASELINE_MAX_DEPTH = 80.0
 
 
@@ -102,15 +105,25 @@ def ground_plane_depth(
     size: Sequence[int],
     camera_height: float = BASELINE_CAMERA_HEIGHT,
     max_depth: float = BASELINE_MAX_DEPTH,
+    plane: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The ground-plane baseline of an image: (H, W) float32, constant along each row.
+    """The ground-plane baseline of an image: (H, W) float32.
 
-    Row ``v`` gets ``min(geometry.ground_depth(v, P, camera_height), max_depth)``; rows at or
-    above the horizon (no ground there) get ``max_depth``.
+    Pixel ``(u, v)`` gets ``min(geometry.ground_depth(v, P, camera_height, u=u, plane=plane),
+    max_depth)`` (``plane`` None: the level road ``camera_height`` below the camera, constant
+    along each row); pixels at or above the horizon (no ground there) get ``max_depth``.
     """
     H, W = (int(s) for s in size)
-    z = np.minimum(geometry.ground_depth(np.arange(H), P, camera_height), max_depth)
-    return np.broadcast_to(z.astype(np.float32)[:, None], (H, W)).copy()
+    z = geometry.ground_depth_map((H, W), P, camera_height, plane)
+    return np.minimum(z, max_depth).astype(np.float32)
+
+
+def frame_planes(batch: dict, camera_height: float) -> np.ndarray:
+    """(B, 4) float64 planes of a batch, NaN rows (frames without one) -> the level plane."""
+    planes = np.asarray(batch["plane"], np.float64).copy()
+    missing = ~np.isfinite(planes).all(axis=1)
+    planes[missing] = geometry.level_plane(camera_height)
+    return planes
 
 
 def prediction_relpath(frame_id: str, camera: int) -> Path:
@@ -133,20 +146,25 @@ class NetworkPredictor:
     """A trained :class:`~gac_jax.models.depth_unet.DepthUNet` as a depth predictor.
 
     ``__call__(batch)`` runs the jitted network (``train=False``) on ``batch['image']``
-    (B, h, w, 3) and ``batch['P2']`` and returns B original-geometry depth maps
+    (B, h, w, 3), ``batch['P2']`` and ``batch['plane']`` (:func:`frame_planes`, the model's
+    ``camera_height`` for frames without one) and returns B original-geometry depth maps
     (:func:`to_original_geometry` of the ``scale_1`` log-depth).
     """
 
     def __init__(self, model, variables: dict):
         self.variables = variables
 
-        def predict(variables, images, P):
-            return model.apply(variables, images, P, train=False)["log_depth"]["scale_1"]
+        self.camera_height = model.camera_height
+
+        def predict(variables, images, P, plane):
+            out = model.apply(variables, images, P, train=False, plane=plane)
+            return out["log_depth"]["scale_1"]
 
         self._predict = jax.jit(predict)
 
     def __call__(self, batch: dict) -> list[np.ndarray]:
-        log_depth = np.asarray(self._predict(self.variables, batch["image"], batch["P2"]))
+        planes = frame_planes(batch, self.camera_height).astype(np.float32)
+        log_depth = np.asarray(self._predict(self.variables, batch["image"], batch["P2"], planes))
         return [
             to_original_geometry(
                 log_depth[b], batch["image_transform"][b], batch["original_size"][b]
@@ -158,7 +176,8 @@ class NetworkPredictor:
 class GroundPlanePredictor:
     """The ground-plane baseline (:func:`ground_plane_depth`) as a predictor.
 
-    The original projection is recovered from the batch: ``P0 = A^-1 @ P2``.
+    The original projection is recovered from the batch: ``P0 = A^-1 @ P2``; the plane is
+    the batch's (crops and resizes do not move it), ``camera_height`` for frames without one.
     """
 
     def __init__(
@@ -169,14 +188,12 @@ class GroundPlanePredictor:
 
     def __call__(self, batch: dict) -> list[np.ndarray]:
         out = []
+        planes = frame_planes(batch, self.camera_height)
         for b in range(len(batch["P2"])):
             A = np.asarray(batch["image_transform"][b], np.float64)
             P0 = np.linalg.solve(A, np.asarray(batch["P2"][b], np.float64))
-            out.append(
-                ground_plane_depth(
-                    P0, batch["original_size"][b], self.camera_height, self.max_depth
-                )
-            )
+            size = batch["original_size"][b]
+            out.append(ground_plane_depth(P0, size, self.camera_height, self.max_depth, planes[b]))
         return out
 
 
@@ -188,6 +205,7 @@ def _input_arrays(sample: dict) -> dict[str, np.ndarray]:
     return {
         "image": np.asarray(sample["image"], np.float32),
         "P2": np.asarray(sample["P2"], np.float32),
+        "plane": np.asarray(sample.get("plane", np.full(4, np.nan)), np.float32),
         "image_transform": np.asarray(sample["image_transform"], np.float32),
         "original_size": np.asarray(sample["original_size"], np.int32).reshape(2),
         "camera": np.asarray(sample["camera"], np.int32),

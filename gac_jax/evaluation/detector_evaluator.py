@@ -19,22 +19,27 @@ import jax.numpy as jnp
 import numpy as np
 
 from gac_jax.data.kitti import KittiObjects, read_label, write_label
-from gac_jax.data.loader import Loader, collate
+from gac_jax.data.loader import Loader, collate, plane_array
 from gac_jax.detection.inference import PostprocessConfig, make_predict_fn, postprocess
 from gac_jax.evaluation.kitti_object import evaluate_detections
+from gac_jax.geometry import DEFAULT_CAMERA_HEIGHT
 
-INPUT_KEYS = ("image", "P2", "image_transform", "original_size")
+INPUT_KEYS = ("image", "P2", "plane", "image_transform", "original_size")
 
 
 @dataclasses.dataclass(frozen=True)
 class InputArrays:
-    """Picklable ``sample -> arrays`` with only what prediction needs (plus the frame id)."""
+    """Picklable ``sample -> arrays`` with only what prediction needs (plus the frame id);
+    ``camera_height`` gives the level plane of frames without a ``plane``."""
+
+    camera_height: float = DEFAULT_CAMERA_HEIGHT
 
     def __call__(self, sample: dict) -> dict[str, np.ndarray]:
         image = np.asarray(sample["image"], np.float32)
         return {
             "image": image,
             "P2": np.asarray(sample["P2"], np.float32),
+            "plane": plane_array(sample, self.camera_height),
             "image_transform": np.asarray(sample["image_transform"], np.float32),
             "original_size": np.asarray(sample["original_size"], np.int32),
             "frame_id": np.asarray(sample["frame_id"]),
@@ -67,6 +72,7 @@ class DetectionEvaluator:
       filter_options: ground filter options (as in training).
       use_ground_filter: apply the ground-plane anchor filter.
       worker_count: loader worker processes.
+      camera_height: the level ground plane of frames without a ``planes/`` file.
     """
 
     def __init__(
@@ -83,6 +89,7 @@ class DetectionEvaluator:
         filter_options: dict | None = None,
         use_ground_filter: bool = True,
         worker_count: int = 0,
+        camera_height: float = DEFAULT_CAMERA_HEIGHT,
     ):
         self.source = source
         self.class_names = tuple(class_names)
@@ -103,7 +110,7 @@ class DetectionEvaluator:
         self.loader = Loader(
             source,
             transform,
-            InputArrays(),
+            InputArrays(camera_height),
             batch_size=batch_size,
             shuffle=False,
             drop_remainder=False,
@@ -121,8 +128,9 @@ class DetectionEvaluator:
         h, w = image_size
         images = jax.ShapeDtypeStruct((self.batch_size, h, w, 3), jnp.float32)
         P2 = jax.ShapeDtypeStruct((self.batch_size, 3, 4), jnp.float32)
+        plane = jax.ShapeDtypeStruct((self.batch_size, 4), jnp.float32)
         t0 = time.perf_counter()
-        self.predict = self.predict.lower(variables, images, P2).compile()
+        self.predict = self.predict.lower(variables, images, P2, plane).compile()
         return time.perf_counter() - t0
 
     def frame_ids(self) -> list[str]:
@@ -173,7 +181,7 @@ class DetectionEvaluator:
                     ]
                 )
             t0 = time.perf_counter()
-            candidates = self.predict(variables, batch["image"], batch["P2"])
+            candidates = self.predict(variables, batch["image"], batch["P2"], batch["plane"])
             candidates = {k: np.asarray(v)[:n] for k, v in candidates.items()}  # drop padding
             t1 = time.perf_counter()
             self.num_kept = int(candidates["scores"].shape[1])

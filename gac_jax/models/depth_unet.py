@@ -214,7 +214,7 @@ class ResizedConvHead(nn.Module):
 class UpStage(nn.Module):
     """One decoder stage (reference ``Up`` + ``DoubleConv``). See the module docstring.
 
-    ``__call__(low (B,h,w,C1), skip (B,H,W,C2), P (B,3,4), train)`` returns
+    ``__call__(low (B,h,w,C1), skip (B,H,W,C2), P (B,3,4), train, plane (B,4) or None)`` returns
     ``(features (B,H,W,features), gac outputs dict or None)``; ``P`` is the input projection
     (used only when ``use_gac``), handed to the GAC via :func:`gac_projection`.
     """
@@ -233,7 +233,12 @@ class UpStage(nn.Module):
 
     @nn.compact
     def __call__(
-        self, low: jax.Array, skip: jax.Array, P: jax.Array, train: bool
+        self,
+        low: jax.Array,
+        skip: jax.Array,
+        P: jax.Array,
+        train: bool,
+        plane: jax.Array | None = None,
     ) -> tuple[jax.Array, dict[str, jax.Array] | None]:
         if self.decoder_conv not in DECODER_CONVS:
             raise ValueError(
@@ -256,7 +261,7 @@ class UpStage(nn.Module):
                 dtype=dt,
                 param_dtype=pdt,
                 name="gac",
-            )(x, P_given)
+            )(x, P_given, plane)
             x = gac_out["features"]
         x = _conv(channels, 5, channels, dt, pdt, "conv1")(x)
         x = batch_norm_layer(train, dt, pdt, "bn1", relu=True)(x)
@@ -283,7 +288,9 @@ class DepthUNet(nn.Module):
       dtype / param_dtype: computation / parameter dtypes (outputs are float32).
 
     ``__call__(images (B,H,W,3) ImageNet-normalised RGB, P (B,3,4) projection of these
-    images in their pixels, train: bool)`` returns::
+    images in their pixels, train: bool, plane (B,4) each frame's ground plane (None: the level
+    plane of camera_height), see :class:`~gac_jax.models.ground_aware_conv.GroundAwareConv`)``
+    returns::
 
       {'log_depth': {'scale_1': (B,H,W), 'scale_4': (B,H4,W4), 'scale_8': (B,H8,W8)},
        'depth': (B,H,W) metres = exp(log_depth['scale_1']),
@@ -310,7 +317,9 @@ class DepthUNet(nn.Module):
     param_dtype: Any = jnp.float32
 
     @nn.compact
-    def __call__(self, images: jax.Array, P: jax.Array, train: bool) -> dict[str, Any]:
+    def __call__(
+        self, images: jax.Array, P: jax.Array, train: bool, plane: jax.Array | None = None
+    ) -> dict[str, Any]:
         if images.ndim != 4 or images.shape[-1] != 3:
             raise ValueError(f"expected NHWC RGB images (B,H,W,3), got shape {images.shape}")
         B, H, W, _ = images.shape
@@ -353,7 +362,7 @@ class DepthUNet(nn.Module):
                 dtype=dt,
                 param_dtype=pdt,
                 name=name,
-            )(x, skips[skip], P, train)
+            )(x, skips[skip], P, train, plane)
             decoded[name] = x
             if gac_out is not None:
                 offsets[name] = gac_out["offset_rows"]

@@ -44,8 +44,10 @@ from gac_jax.models.ground_aware_conv import (
     DEFAULT_CAMERA_HEIGHT,
     DEFAULT_OBJECT_HEIGHT,
     GroundAwareConv,
-    disparity_prior,
+    feature_projection,
+    frame_planes,
 )
+from gac_jax.models.ground_plane import ground_maps
 from gac_jax.models.initializers import torch_conv_bias_init, torch_conv_kernel_init
 from gac_jax.models.resnet import batch_norm_layer
 
@@ -82,7 +84,8 @@ class DetectionHead(nn.Module):
         offset_grad_scale: passed to :class:`GroundAwareConv`.
       dtype / param_dtype: computation / parameter dtypes.
 
-    ``__call__(features (B,Hf,Wf,C), P2 (B,3,4) in input-image pixels, train)`` returns
+    ``__call__(features (B,Hf,Wf,C), P2 (B,3,4) in input-image pixels, train, plane (B,4) the
+    frame's ground plane or None for the level plane of camera_height)`` returns
     ``{'cls_logits': (B,N,K), 'sign_logits': (B,N), 'reg': (B,N,12)}`` with N = Hf*Wf*A,
     plus ``'gac_offsets'`` (B,Hf,Wf) (rows, see :class:`GroundAwareConv`) when
     ``regression_block == 'gac'``. ``train=True`` needs a ``'dropout'`` rng and
@@ -119,7 +122,9 @@ class DetectionHead(nn.Module):
         )
 
     @nn.compact
-    def __call__(self, features: jax.Array, P2: jax.Array, train: bool) -> dict[str, jax.Array]:
+    def __call__(
+        self, features: jax.Array, P2: jax.Array, train: bool, plane: jax.Array | None = None
+    ) -> dict[str, jax.Array]:
         if self.regression_block not in REGRESSION_BLOCKS:
             block = self.regression_block
             raise ValueError(f"regression_block must be one of {REGRESSION_BLOCKS}, got {block!r}")
@@ -156,7 +161,7 @@ class DetectionHead(nn.Module):
                 dtype=self.dtype,
                 param_dtype=self.param_dtype,
                 name="gac",
-            )(x, P2)
+            )(x, P2, plane)
             r = gac["features"]
             outputs["gac_offsets"] = gac["offset_rows"]
         elif self.regression_block == "conv":
@@ -167,10 +172,10 @@ class DetectionHead(nn.Module):
             )
             r = nn.relu(dcn(x))
         else:
-            P2 = jnp.asarray(P2, jnp.float32)
-            disp = disparity_prior(H, P2, self.stride, self.baseline, self.camera_height)
-            disp_map = jnp.broadcast_to(disp[:, :, None, None], (B, H, W, 1)).astype(x.dtype)
-            r = jnp.concatenate([disp_map, x], axis=-1)
+            Pf = feature_projection(jnp.asarray(P2, jnp.float32), self.stride)
+            planes = frame_planes(plane, B, self.camera_height, jnp.float32)
+            _, _, disp = ground_maps(Pf, planes, (H, W), self.object_height, self.baseline, "paper")
+            r = jnp.concatenate([disp[..., None].astype(x.dtype), x], axis=-1)
             r = nn.relu(self._conv(C, C + 1, "disparity_conv")(r))
         for i, in_features in enumerate((C, self.reg_features), start=1):
             r = self._conv(self.reg_features, in_features, f"reg_conv{i}")(r)

@@ -8,6 +8,7 @@ Usage::
     model = Detector(depth=101, num_classes=1, num_anchors=32)
     variables = model.init({"params": key}, images, P2, train=False)
     out = model.apply(variables, images, P2, train=False)                  # inference
+    out = model.apply(variables, images, P2, train=False, plane=plane)     # per-frame ground
     out, updates = model.apply(variables, images, P2, train=True,         # training
                                mutable=["batch_stats"], rngs={"dropout": key})
 """
@@ -50,7 +51,9 @@ class Detector(nn.Module):
       dtype / param_dtype: computation / parameter dtypes (outputs are float32).
 
     ``__call__(images (B,H,W,3) float32 ImageNet-normalised RGB, P2 (B,3,4) projection of
-    these images in their pixels, train: bool)`` returns
+    these images in their pixels, train: bool, plane (B,4) each frame's ground plane ``(a, b, c,
+    d)``, unit upward normal, rectified camera frame; None = the level plane of
+    ``camera_height``)`` returns
 
       * ``'cls_logits'`` (B,N,K), ``'sign_logits'`` (B,N) (logit of ``cos(alpha) > 0``),
       * ``'reg'`` (B,N,12) in the order of ``REGRESSION_COMPONENTS``
@@ -80,7 +83,9 @@ class Detector(nn.Module):
     param_dtype: Any = jnp.float32
 
     @nn.compact
-    def __call__(self, images: jax.Array, P2: jax.Array, train: bool) -> dict[str, jax.Array]:
+    def __call__(
+        self, images: jax.Array, P2: jax.Array, train: bool, plane: jax.Array | None = None
+    ) -> dict[str, jax.Array]:
         if images.ndim != 4 or images.shape[-1] != 3:
             raise ValueError(f"expected NHWC RGB images (B,H,W,3), got shape {images.shape}")
         layer = f"layer{FEATURE_LAYER}"
@@ -110,4 +115,4 @@ class Detector(nn.Module):
             dtype=self.dtype,
             param_dtype=self.param_dtype,
             name="head",
-        )(features, P2, train)
+        )(features, P2, train, plane)

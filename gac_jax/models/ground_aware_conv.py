@@ -8,7 +8,13 @@ ground-plane depth prior. Pure helpers (all in feature-map pixel units):
 * :func:`disparity_prior` - per-row virtual-stereo disparity of the ground plane.
 * :func:`base_offset` - per-row geometric offset (rows) from an object centre to its
   ground contact point.
-* :func:`vertical_gather` - linear interpolation of a feature map along its height axis.
+* :func:`bilinear_gather` - bilinear interpolation of a feature map at fractional (row,
+  column) points; :func:`vertical_gather` - along the height axis only.
+
+:func:`disparity_prior` and :func:`base_offset` are the paper's formulas, i.e. a level camera
+``EL`` above the road. The module itself takes the frame's ground plane (``(B, 4)``, default
+the level plane of ``camera_height``) and uses their general-plane forms, per pixel
+(:mod:`gac_jax.models.ground_plane`), which equal these for a level plane.
 
 Coordinates: feature row ``v`` (0 at the top, down positive) of a feature map whose
 projection is ``P_f`` = ``P`` with rows 0 and 1 divided by the stride (what the reference
@@ -24,7 +30,10 @@ pixel ``(v, u)`` samples row::
     v + offset_rows,   offset_rows = (base_rows(v) / (H/2) + d[v, u]) * (H - 1) / 2
 
 clamped to ``[0, H-1]``; i.e. the geometric offset is applied scaled by ``(H-1)/H`` and the
-learned residual ``d`` (``|d| < 0.1``, normalised) spans at most ``0.05 (H-1)`` rows.
+learned residual ``d`` (``|d| < 0.1``, normalised) spans at most ``0.05 (H-1)`` rows. The
+column ``u + base_cols(v, u) * (W-1)/W`` (clamped to ``[0, W-1]``) follows the bottom point
+sideways for a tilted plane (same scaling; no learned part); it is exactly ``u`` for a level
+plane, where the sampling is therefore the reference's.
 """
 
 from __future__ import annotations
@@ -35,17 +44,32 @@ import jax
 import jax.numpy as jnp
 from flax import linen as nn
 
+from gac_jax.geometry import DEFAULT_CAMERA_HEIGHT, level_plane
+from gac_jax.models.ground_plane import ground_maps
 from gac_jax.models.initializers import torch_conv_bias_init, torch_conv_kernel_init
 
 OFFSET_FORMULAS = ("paper", "reference", "reference_v1")
 DEFAULT_BASELINE = 0.54  # m, virtual stereo baseline (KITTI-like)
-DEFAULT_CAMERA_HEIGHT = 1.65  # m, camera elevation above the ground ("EL")
 DEFAULT_OBJECT_HEIGHT = 1.535  # m, mean object (car) height ("h_mean")
 
 
 def _float_array(x) -> jax.Array:
     x = jnp.asarray(x)
     return x.astype(jnp.result_type(x.dtype, jnp.float32))
+
+
+def frame_planes(plane: jax.Array | None, batch: int, camera_height: float, dtype) -> jax.Array:
+    """(B, 4) ground planes: ``plane`` as given, or the level plane ``(0, -1, 0, camera_height)``.
+
+    Args:
+      plane: (B, 4) ``(a, b, c, d)`` with a unit upward normal (``b < 0``) in the rectified
+        camera frame (:mod:`gac_jax.models.ground_plane`), or None.
+    """
+    if plane is None:
+        return jnp.broadcast_to(jnp.asarray(level_plane(camera_height), dtype), (batch, 4))
+    if plane.shape != (batch, 4):
+        raise ValueError(f"plane must have shape (B,4) = {(batch, 4)}, got {plane.shape}")
+    return jnp.asarray(plane, dtype)
 
 
 def feature_projection(P: jax.Array, stride: float) -> jax.Array:
@@ -167,24 +191,71 @@ def vertical_gather(features: jax.Array, rows: jax.Array) -> jax.Array:
     return (1 - w) * f0 + w * f1
 
 
+def bilinear_gather(features: jax.Array, rows: jax.Array, cols: jax.Array) -> jax.Array:
+    """Bilinearly interpolates ``features`` at fractional ``(rows, cols)`` (border clamping).
+
+    Each axis as :func:`vertical_gather`: ``r = clip(rows, 0, H-1)``, ``r0 = min(floor(r),
+    H-2)``, ``wr = r - r0`` (likewise ``c0, wc`` on ``[0, W-1]``); rows are interpolated first
+    in each of the columns ``c0, c0 + 1``, then the columns: at integer ``cols = u`` this is
+    exactly :func:`vertical_gather` (``wc`` is 0, or 1 at the last column).
+
+    Args:
+      features: (B, H, W, C); rows, cols: (B, H, W) float coordinates (any range; clamped).
+    Returns:
+      (B, H, W, C) in the dtype of ``features``.
+    """
+    if features.ndim != 4 or rows.shape != features.shape[:3] or cols.shape != rows.shape:
+        raise ValueError(
+            f"expected features (B,H,W,C) and rows, cols (B,H,W), got {features.shape}, "
+            f"{rows.shape} and {cols.shape}"
+        )
+    B, H, W, C = features.shape
+
+    def taps(x, n):
+        x = jnp.clip(x, 0.0, n - 1.0)
+        i0 = jnp.clip(jnp.floor(x), 0.0, max(n - 2, 0))
+        w = (x - i0)[..., None].astype(features.dtype)
+        i0 = i0.astype(jnp.int32)
+        return i0, jnp.minimum(i0 + 1, n - 1), w
+
+    r0, r1, wr = taps(rows, H)
+    c0, c1, wc = taps(cols, W)
+    flat = features.reshape(B, H * W, C)
+
+    def at(r, c):
+        index = (r * W + c).reshape(B, H * W, 1)
+        return jnp.take_along_axis(flat, index, axis=1).reshape(B, H, W, C)
+
+    left = (1 - wr) * at(r0, c0) + wr * at(r1, c0)
+    right = (1 - wr) * at(r0, c1) + wr * at(r1, c1)
+    return (1 - wc) * left + wc * right
+
+
 class GroundAwareConv(nn.Module):
     """The GAC module (reference ``LookGround``): C channels in, C channels out.
 
-    Steps, for features ``x`` (B,H,W,C) and the input-image projection ``P`` (B,3,4):
+    Steps, for features ``x`` (B,H,W,C), the input-image projection ``P`` (B,3,4) and the
+    ground ``plane`` (B,4) (None: the level plane of ``camera_height``, the paper's case):
 
     1. ``d0 = tanh(offset_conv(x))`` (conv 3x3 C->1), gradient-scaled as
        ``offset_grad_scale * d0 + (1 - offset_grad_scale) * stop_gradient(d0)`` (the forward
        value is unchanged, its gradient is scaled by 0.05), then ``d = offset_scale * d0``
        (normalised units, see the module docstring).
-    2. ``G = [disparity_prior ‖ x]`` (C+1 channels; the prior is channel 0).
-    3. ``S = vertical_gather(G, v + offset_rows)`` with
-       ``offset_rows = (base_offset / (H/2) + d) * (H-1)/2``.
+    2. ``G = [disparity ‖ x]`` (C+1 channels; the prior is channel 0), the plane's
+       :func:`~gac_jax.models.ground_plane.ground_disparity` at each pixel
+       (:func:`disparity_prior` for a level plane).
+    3. ``S = bilinear_gather(G, v + offset_rows, u + offset_cols)`` with
+       ``offset_rows = (base_rows / (H/2) + d) * (H-1)/2`` and
+       ``offset_cols = base_cols / (W/2) * (W-1)/2``, ``(base_rows, base_cols)`` the plane's
+       :func:`~gac_jax.models.ground_plane.ground_offset` (``(base_offset, 0)`` when level:
+       then this is ``vertical_gather(G, v + offset_rows)``, the reference).
     4. ``out = ReLU(x + alpha * extract(S))``, ``extract`` = conv 1x1 (C+1)->C, ``alpha`` a
        learned scalar initialised to 0, so the module is the identity at init for ``x >= 0``.
 
     Returns ``{'features': (B,H,W,C), 'offset_rows': (B,H,W) rows from each pixel to its
     sample point (before clamping; the paper's Fig. 7 green points are at row
-    ``v + offset_rows``), 'sample_rows': (B,H,W) clamped rows actually sampled}``. Offsets
+    ``v + offset_rows``), 'sample_rows': (B,H,W) clamped rows actually sampled,
+    'offset_cols' / 'sample_cols': the same for columns (0 / ``u`` for a level plane)}``. Offsets
     and rows are in ``promote_types(dtype, float32)``: float32 for float32/bfloat16 modules,
     float64 for float64 ones (with ``jax_enable_x64``).
     """
@@ -200,7 +271,9 @@ class GroundAwareConv(nn.Module):
     param_dtype: Any = jnp.float32
 
     @nn.compact
-    def __call__(self, x: jax.Array, P: jax.Array) -> dict[str, jax.Array]:
+    def __call__(
+        self, x: jax.Array, P: jax.Array, plane: jax.Array | None = None
+    ) -> dict[str, jax.Array]:
         if x.ndim != 4:
             raise ValueError(f"expected NHWC features (B,H,W,C), got shape {x.shape}")
         B, H, W, C = x.shape
@@ -227,16 +300,25 @@ class GroundAwareConv(nn.Module):
         d0 = g * d0 + (1.0 - g) * jax.lax.stop_gradient(d0)
         d = self.offset_scale * d0  # (B,H,W), grid_sample-normalised units
 
-        P = jnp.asarray(P, geo)
-        disp = disparity_prior(H, P, self.stride, self.baseline, self.camera_height)  # (B,H)
-        base_rows = base_offset(
-            H, P, self.stride, self.object_height, self.camera_height, self.offset_formula
-        )  # (B,H)
-        offset_rows = (base_rows[:, :, None] / (H / 2.0) + d) * ((H - 1) / 2.0)
+        if self.offset_formula not in OFFSET_FORMULAS:
+            formula = self.offset_formula
+            raise ValueError(f"offset_formula must be one of {OFFSET_FORMULAS}, got {formula!r}")
+        Pf = feature_projection(jnp.asarray(P, geo), self.stride)
+        base_rows, base_cols, disp = ground_maps(
+            Pf,
+            frame_planes(plane, B, self.camera_height, geo),
+            (H, W),
+            self.object_height,
+            self.baseline,
+            self.offset_formula,
+        )  # (B,H,W) each
+        offset_rows = (base_rows / (H / 2.0) + d) * ((H - 1) / 2.0)
         rows = jnp.arange(H, dtype=geo)[None, :, None] + offset_rows
+        offset_cols = base_cols / (W / 2.0) * ((W - 1) / 2.0)
+        cols = jnp.arange(W, dtype=geo)[None, None, :] + offset_cols
 
-        disp_map = jnp.broadcast_to(disp[:, :, None, None], (B, H, W, 1)).astype(x.dtype)
-        sampled = vertical_gather(jnp.concatenate([disp_map, x], axis=-1), rows)
+        disp_map = disp[..., None].astype(x.dtype)
+        sampled = bilinear_gather(jnp.concatenate([disp_map, x], axis=-1), rows, cols)
         extracted = nn.Conv(
             C,
             (1, 1),
@@ -252,4 +334,6 @@ class GroundAwareConv(nn.Module):
             "features": out,
             "offset_rows": offset_rows,
             "sample_rows": jnp.clip(rows, 0.0, H - 1.0),
+            "offset_cols": offset_cols,
+            "sample_cols": jnp.clip(cols, 0.0, W - 1.0),
         }

@@ -223,4 +223,5 @@ def evaluator_for(detector: LoadedDetector, source, batch_size: int) -> Detectio
         top_k=config.eval.top_k,
         filter_options=filter_options(config),
         use_ground_filter=config.anchors.filter,
+        camera_height=config.model.gac.camera_height,
     )

@@ -79,6 +79,7 @@ def make_train_loader(config, source, per_process_batch: int, mesh) -> Loader:
     :func:`gac_jax.training.parallel.process_shard`)."""
     d = config.data
     shard_index, num_shards = parallel.process_shard(mesh)
+    arrays = DepthArrays(config.model.gac.camera_height)
     kwargs = dict(
         batch_size=per_process_batch,
         seed=config.seed,
@@ -95,11 +96,11 @@ def make_train_loader(config, source, per_process_batch: int, mesh) -> Loader:
                 "lists no frames); use data.train_views='both'",
             )
         return RandomViewLoader(
-            source, view_groups(frames), train_transform(config), DepthArrays(), **kwargs
+            source, view_groups(frames), train_transform(config), arrays, **kwargs
         )
     if d.train_views != "both":
         raise ValueError(f"data.train_views must be 'both' or 'random', got {d.train_views!r}")
-    return Loader(source, train_transform(config), DepthArrays(), **kwargs)
+    return Loader(source, train_transform(config), arrays, **kwargs)
 
 
 def load_or_compute_prior_mean(config, source, workdir: Path) -> float:
@@ -144,6 +145,7 @@ def make_train_step(model, tx, loss_opts: dict, mesh, state_sharding):
                 batch["image"],
                 batch["P2"],
                 train=True,
+                plane=batch.get("plane"),
                 mutable=["batch_stats"],
             )
             loss, parts = depth_loss(

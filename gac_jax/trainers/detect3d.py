@@ -66,12 +66,15 @@ def make_train_step(model, tx, constants, loss_cfg, config, mesh, state_sharding
                 batch["image"],
                 batch["P2"],
                 train=True,
+                plane=batch.get("plane"),
                 rngs={"dropout": state.step_key("dropout")},
                 mutable=["batch_stats"],
             )
-            mask = (
-                ground_mask_from_constants(constants, batch["P2"], **fopts) if use_filter else None
-            )
+            mask = None
+            if use_filter:
+                mask = ground_mask_from_constants(
+                    constants, batch["P2"], batch.get("plane"), **fopts
+                )
             loss, metrics = detection_loss(outputs, batch, constants, mask, loss_cfg)
             return loss, (metrics, mutated["batch_stats"])
 
@@ -116,7 +119,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     loader = Loader(
         train_source,
         train_transform(config),
-        DetectionArrays(classes, config.data.max_objects, truncate=True),
+        DetectionArrays(classes, config.data.max_objects, True, config.model.gac.camera_height),
         batch_size=per_process_batch,
         seed=config.seed,
         shard_index=shard_index,

@@ -4,9 +4,10 @@
         --checkpoint C --config F) --out DIR [--opset K] [key.sub=value ...]
 
 The graph is emitted from the Flax variables and the config (:mod:`gac_jax.deploy.export.networks`):
-NCHW, BatchNorm folded, inputs ``images`` (B,H,W,3) float32 and ``P2`` (B,3,4) with a dynamic
-batch. ``--checkpoint`` (converted weights, ``python -m gac_jax.weights.convert``) is for the
-detector. Errors end with ``error: <file>: <problem>`` and exit code 2.
+NCHW, BatchNorm folded, inputs ``images`` (B,H,W,3) float32, ``P2`` (B,3,4) and ``plane`` (B,4)
+(the frame's ground plane) with a dynamic batch. ``--checkpoint`` (converted weights,
+``python -m gac_jax.weights.convert``) is for the detector. Errors end with
+``error: <file>: <problem>`` and exit code 2.
 """
 
 from __future__ import annotations

@@ -9,15 +9,21 @@ into the convolutions) and dropout is the identity.
 Graph inputs and outputs (batch ``B`` is a dynamic dimension):
 
 * detector: ``images`` (B,H,W,3) float32 (normalised RGB, as the Flax model takes them),
-  ``P2`` (B,3,4) -> ``cls_logits`` (B,N,K), ``sign_logits`` (B,N), ``reg`` (B,N,12);
-* depth U-Net: ``images`` (B,H,W,3), ``P2`` (B,3,4) -> ``log_depth`` (B,H,W) (the
-  ``scale_1`` head) and ``depth`` (B,H,W) metres.
+  ``P2`` (B,3,4), ``plane`` (B,4) -> ``cls_logits`` (B,N,K), ``sign_logits`` (B,N),
+  ``reg`` (B,N,12);
+* depth U-Net: ``images`` (B,H,W,3), ``P2`` (B,3,4), ``plane`` (B,4) -> ``log_depth``
+  (B,H,W) (the ``scale_1`` head) and ``depth`` (B,H,W) metres.
 
-The projection ``P2`` stays a live input: the GAC's sampling offsets and disparity prior are
-computed from it inside the graph, exactly as :mod:`gac_jax.models.ground_aware_conv` does.
+The projection ``P2`` and the ground ``plane`` (``(a, b, c, d)``, unit upward normal, camera
+frame; ``(0, -1, 0, camera_height)`` for a level camera) stay live inputs: the GAC's sampling
+offsets and disparity prior are computed from them inside the graph by the very formulas of
+:mod:`gac_jax.models.ground_plane` (evaluated on symbolic tensors, :class:`_Sym`). A model
+without GAC or disparity prior ignores ``plane``.
 """
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import numpy as np
 import onnx
@@ -26,6 +32,8 @@ from gac_jax.deploy.export.graph import GraphBuilder
 from gac_jax.models.depth_unet import DECODER_STAGES, REFERENCE_GAC_STRIDE, DepthUNet
 from gac_jax.models.detection_head import NUM_REGRESSION
 from gac_jax.models.detector import FEATURE_LAYER, FEATURE_STRIDE, Detector
+from gac_jax.models.ground_aware_conv import OFFSET_FORMULAS
+from gac_jax.models.ground_plane import ground_disparity, ground_offset, plane_terms
 from gac_jax.models.resnet import BOTTLENECK_EXPANSION, RESNET_SPECS, layer_output_size
 
 
@@ -103,42 +111,117 @@ def _resnet(
 # ----------------------------------------------------------------------------- GAC
 
 
-def _projection_rows(g: GraphBuilder, P2: str) -> dict[str, str]:
-    """``fy, cy, ty`` (each (B,1)) of the input projection (rows 0-1 not yet divided)."""
-    flat = g.reshape(P2, [-1, 12])
-    return {
-        "fy": g.gather_rows(flat, np.array([5]), axis=1),
-        "cy": g.gather_rows(flat, np.array([6]), axis=1),
-        "ty": g.gather_rows(flat, np.array([7]), axis=1),
-    }
+def _binary(op: str, swap: bool = False):
+    """A :class:`_Sym` arithmetic method emitting ``op`` (``swap``: the reflected one)."""
+
+    def method(self, x):
+        return self._op(op, x, self) if swap else self._op(op, self, x)
+
+    return method
 
 
-def _feature_rows(
-    g: GraphBuilder, rows: dict[str, str], divisors: tuple[float, ...], keep_ty: bool
+class _Sym:
+    """An ONNX tensor with Python arithmetic, so :mod:`gac_jax.models.ground_plane`'s formulas
+    (written with ``+ - * /`` only) emit the graph ops of the same computation."""
+
+    def __init__(self, g: GraphBuilder, name: str):
+        self.g, self.name = g, name
+
+    def _arg(self, x) -> str:
+        return x.name if isinstance(x, _Sym) else self.g.const(np.float32(x))
+
+    def _op(self, op: str, *args) -> _Sym:
+        return _Sym(self.g, self.g.op(op, [self._arg(a) for a in args]))
+
+    __add__, __radd__ = _binary("Add"), _binary("Add", swap=True)
+    __sub__, __rsub__ = _binary("Sub"), _binary("Sub", swap=True)
+    __mul__, __rmul__ = _binary("Mul"), _binary("Mul", swap=True)
+    __truediv__, __rtruediv__ = _binary("Div"), _binary("Div", swap=True)
+
+    def __neg__(self):
+        return self._op("Neg", self)
+
+
+_SYM_OPS = SimpleNamespace(
+    relu=lambda x: x._op("Relu", x),
+    abs=lambda x: x._op("Abs", x),
+    maximum=lambda x, y: x._op("Max", x, y),
+)
+
+
+def _frame_entries(g: GraphBuilder, x: str, count: int) -> list[_Sym]:
+    """The ``count`` per-frame values of a (B, ...) input, each (B,1,1)."""
+    flat = g.reshape(x, [-1, count])
+    return [_Sym(g, g.gather_rows(flat, np.array([[i]]), axis=1)) for i in range(count)]
+
+
+def _feature_projection(
+    entries: list[_Sym], divisors: tuple[float, ...], keep_translation: bool
+) -> list[list]:
+    """``P_f[i][j]`` of a feature map: rows 0-1 times ``1/d`` for each divisor in turn (as
+    :func:`~gac_jax.models.ground_aware_conv.feature_projection` does), the translation column
+    0 if not ``keep_translation`` (the reference depth intrinsics)."""
+    P = [[entries[4 * i + j] for j in range(4)] for i in range(3)]
+    if not keep_translation:
+        for row in P:
+            row[3] = 0.0
+    for i in (0, 1):
+        for j in range(4):
+            for d in divisors:
+                P[i][j] = P[i][j] * np.float32(1.0 / d)
+    return P
+
+
+def _plane_maps(
+    g: GraphBuilder, P: list[list], plane: list[_Sym], size: tuple[int, int], geometry: dict
 ) -> tuple[str, str, str]:
-    """``fy, cy, ty`` of a feature map: rows 0-1 times ``1/d`` for each divisor in turn (as
-    :func:`~gac_jax.models.ground_aware_conv.feature_projection` does), ``ty = 0`` if not
-    ``keep_ty`` (the reference depth intrinsics)."""
-    out = []
-    for key in ("fy", "cy", "ty"):
-        t = rows[key]
-        if key == "ty" and not keep_ty:
-            t = g.op("Mul", [t, g.const(0.0)])
-        for d in divisors:
-            t = g.op("Mul", [t, g.const(np.float32(1.0 / d))])
-        out.append(t)
-    return out[0], out[1], out[2]
+    """(B,1,H,W) ground offset rows, cols and disparity prior of
+    :mod:`gac_jax.models.ground_plane`."""
+    H, W = size
+    terms = plane_terms(P, plane)
+    u = _Sym(g, g.const(np.arange(W, dtype=np.float32).reshape(1, 1, W), "cols"))
+    v = _Sym(g, g.const(np.arange(H, dtype=np.float32).reshape(1, H, 1), "rows"))
+    rows, cols = ground_offset(
+        terms, u, v, geometry["object_height"], geometry["offset_formula"], _SYM_OPS
+    )
+    disparity = ground_disparity(terms, u, v, geometry["baseline"], _SYM_OPS)
+    return tuple(g.reshape(t.name, [-1, 1, H, W]) for t in (rows, cols, disparity))
 
 
-def _base_offset_coefficient(formula: str, h: float, el: float) -> float:
-    """``base_offset = relu(coef * (v - cy))`` for each formula of ``base_offset``."""
-    if formula == "paper":
-        return h / (2.0 * el - h)
-    if formula == "reference":
-        return h / (2.0 * (el - h / 2.0))
-    if formula == "reference_v1":
-        return h / 2.0 * (el - h / 2.0)
-    raise ExportError(f"offset_formula {formula!r} is not exportable")
+def _taps(g: GraphBuilder, x: str, n: int) -> tuple[str, str, str]:
+    """Border-clamped linear taps of coordinates ``x`` on ``[0, n-1]``: ``(i0, i1, frac)``
+    (int64, int64, float), as :func:`~gac_jax.models.ground_aware_conv.bilinear_gather`."""
+    x = g.op("Clip", [x, g.const(np.float32(0.0)), g.const(np.float32(n - 1.0))])
+    x0 = g.op(
+        "Clip",
+        [g.op("Floor", [x]), g.const(np.float32(0.0)), g.const(np.float32(max(n - 2, 0)))],
+    )
+    i0 = g.op("Cast", [x0], to=onnx.TensorProto.INT64)
+    i1 = g.op(
+        "Min", [g.op("Add", [i0, g.const(1, "one", np.int64)]), g.const(n - 1, "nm1", np.int64)]
+    )
+    return i0, i1, g.op("Sub", [x, x0])
+
+
+def _bilinear_gather(g: GraphBuilder, feats: str, rows: str, cols: str, size) -> str:
+    """:func:`~gac_jax.models.ground_aware_conv.bilinear_gather` on NCHW ``feats`` with
+    (B,1,H,W) ``rows`` / ``cols``: four GatherElements on the flattened H*W axis."""
+    H, W = size
+    r0, r1, wr = _taps(g, rows, H)
+    c0, c1, wc = _taps(g, cols, W)
+    flat = g.reshape(feats, [0, 0, H * W])
+    shape = g.op("Shape", [flat])
+
+    def at(r, c):
+        index = g.op("Add", [g.op("Mul", [r, g.const(W, "w", np.int64)]), c])
+        index = g.op("Expand", [g.reshape(index, [0, 1, H * W]), shape])
+        return g.reshape(g.op("GatherElements", [flat, index], axis=2), [0, 0, H, W])
+
+    def lerp(a, b, t):
+        one_minus = g.op("Sub", [g.const(np.float32(1.0)), t])
+        return g.op("Add", [g.op("Mul", [one_minus, a]), g.op("Mul", [t, b])])
+
+    return lerp(lerp(at(r0, c0), at(r1, c0), wr), lerp(at(r0, c1), at(r1, c1), wr), wc)
 
 
 def _ground_aware_conv(
@@ -147,50 +230,27 @@ def _ground_aware_conv(
     path: tuple[str, ...],
     x: str,
     size: tuple[int, int],
-    proj: tuple[str, str, str],
+    P: list[list],
+    plane: list[_Sym],
     geometry: dict,
 ) -> str:
     """:class:`~gac_jax.models.ground_aware_conv.GroundAwareConv` on NCHW ``x`` (B,C,H,W)."""
+    if geometry["offset_formula"] not in OFFSET_FORMULAS:
+        raise ExportError(f"offset_formula {geometry['offset_formula']!r} is not exportable")
     H, W = size
-    fy, cy, ty = proj
-    v = g.const(np.arange(H, dtype=np.float32)[None, :], "rows")  # (1,H)
-    dv = g.op("Sub", [v, cy])  # (B,H)
-    # disparity prior relu(fy * B * (v - cy) / (|fy * EL + Ty| + 1e-10))
-    num = g.op("Mul", [g.op("Mul", [fy, g.const(np.float32(geometry["baseline"]))]), dv])
-    den = g.op("Mul", [fy, g.const(np.float32(geometry["camera_height"]))])
-    den = g.op("Add", [g.op("Abs", [g.op("Add", [den, ty])]), g.const(np.float32(1e-10))])
-    disp = g.op("Relu", [g.op("Div", [num, den])])
-    disp_map = g.op(
-        "Expand", [g.reshape(disp, [-1, 1, H, 1]), g.const([1, 1, H, W], "sh", np.int64)]
-    )
-    # base offset (rows) and the learned residual d = offset_scale * tanh(offset_conv(x))
-    coef = _base_offset_coefficient(
-        geometry["offset_formula"], geometry["object_height"], geometry["camera_height"]
-    )
-    base = g.op("Relu", [g.op("Mul", [dv, g.const(np.float32(coef))])])
-    base = g.reshape(base, [-1, 1, H, 1])
+    base, base_cols, disp_map = _plane_maps(g, P, plane, size, geometry)  # (B,1,H,W) each
+    # the learned residual d = offset_scale * tanh(offset_conv(x))
     d = g.op("Tanh", [g.conv(x, w.conv(*path, "offset_conv"))])  # (B,1,H,W)
     d = g.op("Mul", [d, g.const(np.float32(geometry["offset_scale"]))])
     offset = g.op("Add", [g.op("Mul", [base, g.const(np.float32(1.0 / (H / 2.0)))]), d])
     offset = g.op("Mul", [offset, g.const(np.float32((H - 1) / 2.0))])
     rows = g.op("Add", [g.const(np.arange(H, dtype=np.float32).reshape(1, 1, H, 1)), offset])
-    # vertical linear interpolation of [disp ‖ x] with border clamping
+    offset_cols = g.op("Mul", [base_cols, g.const(np.float32(1.0 / (W / 2.0)))])
+    offset_cols = g.op("Mul", [offset_cols, g.const(np.float32((W - 1) / 2.0))])
+    cols = g.op("Add", [g.const(np.arange(W, dtype=np.float32).reshape(1, 1, 1, W)), offset_cols])
+    # bilinear interpolation of [disp ‖ x] with border clamping
     feats = g.op("Concat", [disp_map, x], axis=1)
-    rows = g.op("Clip", [rows, g.const(np.float32(0.0)), g.const(np.float32(H - 1.0))])
-    r0 = g.op(
-        "Clip",
-        [g.op("Floor", [rows]), g.const(np.float32(0.0)), g.const(np.float32(max(H - 2, 0)))],
-    )
-    frac = g.op("Sub", [rows, r0])
-    i0 = g.op("Cast", [r0], to=onnx.TensorProto.INT64)
-    i1 = g.op(
-        "Min", [g.op("Add", [i0, g.const(1, "one", np.int64)]), g.const(H - 1, "hm1", np.int64)]
-    )
-    shape = g.op("Shape", [feats])
-    f0 = g.op("GatherElements", [feats, g.op("Expand", [i0, shape])], axis=2)
-    f1 = g.op("GatherElements", [feats, g.op("Expand", [i1, shape])], axis=2)
-    one_minus = g.op("Sub", [g.const(np.float32(1.0)), frac])
-    sampled = g.op("Add", [g.op("Mul", [one_minus, f0]), g.op("Mul", [frac, f1])])
+    sampled = _bilinear_gather(g, feats, rows, cols, size)
     alpha = float(w.value(*path, "alpha")[0])
     extracted = g.conv(sampled, w.conv(*path, "extract"), scale=alpha)  # alpha folded in
     return g.op("Relu", [g.op("Add", [x, extracted])])
@@ -220,6 +280,7 @@ def detector_graph(
     g, w = GraphBuilder("gac_detector"), _Weights(variables)
     images = g.add_input("images", ["batch", H, W, 3])
     P2 = g.add_input("P2", ["batch", 3, 4])
+    plane = _frame_entries(g, g.add_input("plane", ["batch", 4]), 4)
     x = g.op("Transpose", [images], perm=[0, 3, 1, 2])
     x = _resnet(g, w, x, model.depth, model.width, FEATURE_LAYER, "backbone")["layer3"]
 
@@ -233,22 +294,15 @@ def detector_graph(
     g.add_output(sign, "sign_logits", ["batch", N])
 
     block = model.regression_block
+    geometry = _geometry(model, model.offset_scale)
+    if block in ("gac", "disparity_conv"):
+        P = _feature_projection(_frame_entries(g, P2, 12), (FEATURE_STRIDE,), True)
     if block == "gac":
-        proj = _feature_rows(g, _projection_rows(g, P2), (FEATURE_STRIDE,), keep_ty=True)
-        geometry = _geometry(model, model.offset_scale)
-        r = _ground_aware_conv(g, w, ("head", "gac"), x, (Hf, Wf), proj, geometry)
+        r = _ground_aware_conv(g, w, ("head", "gac"), x, (Hf, Wf), P, plane, geometry)
     elif block == "conv":
         r = g.conv(x, w.conv("head", "plain_conv"), relu=True)
     elif block == "disparity_conv":
-        fy, cy, ty = _feature_rows(g, _projection_rows(g, P2), (FEATURE_STRIDE,), keep_ty=True)
-        v = g.const(np.arange(Hf, dtype=np.float32)[None, :], "rows")
-        num = g.op(
-            "Mul", [g.op("Mul", [fy, g.const(np.float32(model.baseline))]), g.op("Sub", [v, cy])]
-        )
-        den = g.op("Mul", [fy, g.const(np.float32(model.camera_height))])
-        den = g.op("Add", [g.op("Abs", [g.op("Add", [den, ty])]), g.const(np.float32(1e-10))])
-        disp = g.reshape(g.op("Relu", [g.op("Div", [num, den])]), [-1, 1, Hf, 1])
-        disp = g.op("Expand", [disp, g.const([1, 1, Hf, Wf], "sh", np.int64)])
+        _, _, disp = _plane_maps(g, P, plane, (Hf, Wf), geometry)
         r = g.conv(g.op("Concat", [disp, x], axis=1), w.conv("head", "disparity_conv"), relu=True)
     else:
         raise ExportError(
@@ -348,10 +402,11 @@ def depth_graph(
     g, w = GraphBuilder("gac_depth_unet"), _Weights(variables)
     images = g.add_input("images", ["batch", H, W, 3])
     P2 = g.add_input("P2", ["batch", 3, 4])
+    plane = _frame_entries(g, g.add_input("plane", ["batch", 4]), 4)
     x = g.op("Transpose", [images], perm=[0, 3, 1, 2])
     skips = _resnet(g, w, x, model.depth, model.width, 4, "backbone")
     sizes = {f"layer{L}": (layer_output_size(H, L), layer_output_size(W, L)) for L in range(1, 5)}
-    rows = _projection_rows(g, P2) if model.use_gac else None
+    entries = _frame_entries(g, P2, 12) if model.use_gac else None
     x, have = skips["layer4"], sizes["layer4"]
     for name, skip, stride, gac in DECODER_STAGES:
         want = sizes[skip]
@@ -360,10 +415,10 @@ def depth_graph(
         x = g.op("Concat", [skips[skip], up], axis=1)
         if model.use_gac and gac:
             if model.intrinsics_mode == "correct":
-                proj = _feature_rows(g, rows, (stride,), keep_ty=True)
+                P = _feature_projection(entries, (stride,), True)
             else:
-                proj = _feature_rows(g, rows, (2.0 * stride, REFERENCE_GAC_STRIDE), keep_ty=False)
-            x = _ground_aware_conv(g, w, (name, "gac"), x, want, proj, _geometry(model))
+                P = _feature_projection(entries, (2.0 * stride, REFERENCE_GAC_STRIDE), False)
+            x = _ground_aware_conv(g, w, (name, "gac"), x, want, P, plane, _geometry(model))
         x = g.conv(x, w.conv(name, "conv1"), w.bn(name, "bn1"), relu=True, winograd_size=want)
         x = g.conv(x, w.conv(name, "conv2"), w.bn(name, "bn2"), relu=True)
         have = want

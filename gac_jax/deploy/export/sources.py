@@ -192,6 +192,7 @@ def export_source(
         "inputs": {
             "images": ["batch", *source.image_size, 3],
             "P2": ["batch", 3, 4],
+            "plane": ["batch", 4],
         },
         "decoding": source.decoding,
         "config": source.config.to_dict(),
