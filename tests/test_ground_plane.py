@@ -23,7 +23,7 @@ from gac_jax.models.ground_aware_conv import (
     vertical_gather,
 )
 from gac_jax.models.ground_plane import ground_maps
-from tests.tilted_frames import scene_plane, write_tilted_root
+from tests.tilted_frames import write_tilted_root
 
 KITTI_P2 = np.array(
     [
@@ -268,7 +268,7 @@ def test_generated_plane_is_the_scene_ground(tilted_root):
 
     frame = make_frame(3, 1, (188, 621), pitch=np.radians(20.0))
     np.testing.assert_allclose(
-        KittiObjectSource(tilted_root, "all")[1]["plane"], scene_plane(frame.scene), atol=1e-11
+        KittiObjectSource(tilted_root, "all")[1]["plane"], frame.plane, atol=1e-11
     )
 
 

@@ -1,6 +1,6 @@
 """A small KITTI-format object folder of generated frames whose camera is pitched down (the
 authors' issue #69), each with its ``planes/NNNNNN.txt`` (written here from the generator's
-scene, not by the generator)."""
+frame, not by the generator's writer)."""
 
 from __future__ import annotations
 
@@ -11,11 +11,6 @@ import numpy as np
 from gac_jax.data.files import write_png
 from gac_jax.data.kitti import KittiObjectLayout, write_calib, write_label, write_plane, write_split
 from gac_jax.data.synthetic.frame import make_frame
-
-
-def scene_plane(scene) -> np.ndarray:
-    """(4,) upward-normal plane of a generated scene (its ``n_down . X = camera_height``)."""
-    return np.append(-scene.ground_normal, scene.camera_height)
 
 
 def write_tilted_root(
@@ -34,7 +29,7 @@ def write_tilted_root(
         write_png(layout.image(fid, 2), frame.views[2].image)
         write_calib(layout.calib(fid), frame.calib)
         write_label(layout.label(fid), frame.objects)
-        write_plane(layout.plane(fid), scene_plane(frame.scene))
+        write_plane(layout.plane(fid), frame.plane)
         ids.append(fid)
     write_split(layout.split_file("all"), ids)
     return root

@@ -131,9 +131,3 @@ def ground_plane(ground_normal: np.ndarray, camera_height: float) -> np.ndarray:
     down, as the scene has it) in the KITTI ``planes/`` convention (normal up, ``d`` = height)."""
     n = np.asarray(ground_normal, np.float64)
     return np.concatenate([-n / np.linalg.norm(n), [camera_height]]) + 0.0  # (no -0.0)
-
-
-def plane_text(plane: np.ndarray) -> str:
-    """The ``planes/NNNNNN.txt`` file of a plane (AVOD's KITTI planes format)."""
-    values = " ".join(f"{v:.6e}" for v in np.asarray(plane, np.float64))
-    return f"# Plane\nWidth 4\nHeight 1\n{values}\n"

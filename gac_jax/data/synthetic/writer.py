@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 
 from gac_jax.data import files
-from gac_jax.data.kitti import write_calib, write_label, write_split
+from gac_jax.data.kitti import write_calib, write_label, write_plane, write_split
 from gac_jax.data.synthetic import calibration, rigs
 from gac_jax.data.synthetic.frame import frame_rig, make_frame
 from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
@@ -225,8 +225,7 @@ def _write_frame(job: _Job, index: int) -> float:
     write_calib(paths["calib"], frame.calib)
     write_label(paths["label"], frame.objects)
     if "plane" in paths:
-        with files.atomic_write(paths["plane"]) as f:
-            f.write(rigs.plane_text(frame.plane))
+        write_plane(paths["plane"], frame.plane)
     for cam in (2, 3):
         view = frame.views[cam]
         dense = files.depth_to_uint16(view.depth)
