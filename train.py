@@ -11,8 +11,12 @@ SLURM / Open MPI). See docs/multihost.md.
 
 SIGTERM or Ctrl-C (SIGINT): the run finishes its current step, saves a checkpoint, prints
 "stopped at step N, checkpoint saved; run the same command to resume" and exits with 75;
-a second Ctrl-C stops at once (130, no checkpoint). Exit codes: 0 done, 1 crash, 2 bad config
-or data, 3 another process died or hung, 75 stopped after a checkpoint (run again to resume).
+a second Ctrl-C stops at once (130, no checkpoint). One run per workdir: a second train.py (or
+evaluate.py) on a workdir in use stops at once, naming the process that holds it (exit 2). A
+full disk ends the run with one line naming the file, the free space and the checkpoint kept
+(exit 1; library details in WORKDIR/details.log); run again, with space, to resume. Exit
+codes: 0 done, 1 crash or disk failure, 2 bad config or data or workdir in use, 3 another
+process died or hung, 75 stopped after a checkpoint (run again to resume).
 """
 
 from __future__ import annotations
@@ -74,7 +78,8 @@ def main(argv=None) -> int:
     from gac_jax.cpu_backend import apply_default_xla_flags
 
     apply_default_xla_flags()  # before JAX starts its backend
-    from gac_jax.training import multiprocess, stopping
+    from gac_jax.data.io_errors import EXIT_DISK_FAILURE, DiskWriteError
+    from gac_jax.training import multiprocess, stopping, workdir_lock
 
     try:
         multi = multiprocess.initialize_distributed(
@@ -89,8 +94,13 @@ def main(argv=None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     stopping.install_stop_handlers()
+    leave_at_once = multi  # on failure (see below)
     try:
         code = _run(args)
+    except DiskWriteError as e:  # one line; the library noise went to the details file
+        print(f"error: {e}", file=sys.stderr)
+        code = EXIT_DISK_FAILURE
+        leave_at_once = True  # a normal exit has the failed save's tasks log at shutdown
     except multiprocess.PeerLostError as e:
         if multi:  # one line, even if a watcher thread reports the same loss meanwhile
             multiprocess.exit_once(f"error: {e}", multiprocess.EXIT_PEER_LOST)
@@ -104,11 +114,12 @@ def main(argv=None) -> int:
             raise
         traceback.print_exc()
         code = 1
-    if multi and code not in (0, multiprocess.EXIT_PREEMPTED):
+    if leave_at_once and code not in (0, multiprocess.EXIT_PREEMPTED):
         # Failed: leave at once. A normal exit would wait in JAX's shutdown barrier
         # for peers that may be dead or stuck in a collective with this process.
         sys.stdout.flush()
         sys.stderr.flush()
+        workdir_lock.release_all()
         os._exit(code)
     return code
 
@@ -118,6 +129,8 @@ def _run(args: argparse.Namespace) -> int:
 
     from gac_jax.config import ConfigError, apply_overrides, load_config, resolve_config_path
     from gac_jax.data.files import KittiFormatError
+    from gac_jax.data.io_errors import error_line
+    from gac_jax.training.workdir_lock import LockUnsupportedError, WorkdirBusyError
 
     spec = args.config or DEFAULT_CONFIGS[args.task]
     try:
@@ -139,8 +152,11 @@ def _run(args: argparse.Namespace) -> int:
             from gac_jax.trainers import depth
 
             depth.train_and_evaluate(config, workdir)
-    except (ConfigError, KittiFormatError, FileNotFoundError) as e:
+    except (ConfigError, KittiFormatError, WorkdirBusyError) as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except (FileNotFoundError, PermissionError, LockUnsupportedError) as e:
+        print(f"error: {error_line(e, workdir)}", file=sys.stderr)
         return 2
     return 0
 

@@ -11,7 +11,10 @@ The offline scorers are plain functions returning the result dict
 (:func:`evaluate_detection_folders`, :func:`evaluate_depth_folders`); a mode that
 first runs a trained model (writing result files) plugs in beside them in
 :func:`main` and reuses them for scoring. Invalid input ends with a one-line
-``error: <file>[:<line>]: <problem>`` on stderr and exit code 2.
+``error: <file>[:<line>]: <problem>`` on stderr and exit code 2, and so does a workdir that
+another process writes to (model mode writes its results there: it holds the workdir's lock,
+:mod:`gac_jax.training.workdir_lock`); a full disk ends with ``error: <file>: no space left on
+device (N MB free)`` and exit code 1.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from pathlib import Path
 
 from gac_jax.cli.model_mode import add_model_mode_arguments, reject_model_mode_arguments
 from gac_jax.data.files import KittiFormatError, atomic_write, read_depth_png
+from gac_jax.data.io_errors import error_line, exit_code
 from gac_jax.data.kitti import KittiObjects, read_label, read_split
 from gac_jax.evaluation.depth_metrics import DepthMetricAccumulator, format_depth_table
 from gac_jax.evaluation.kitti_object import (
@@ -33,6 +37,7 @@ from gac_jax.evaluation.kitti_object import (
     format_table,
     overlap_meta,
 )
+from gac_jax.training.workdir_lock import WorkdirBusyError
 
 EXIT_INVALID_INPUT = 2
 
@@ -238,7 +243,8 @@ def _run_depth(args, parser) -> dict:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``evaluate.py``; returns the exit code (0 ok, 2 invalid input)."""
+    """Entry point of ``evaluate.py``; returns the exit code (0 ok, 1 disk failure, 2 invalid
+    input or workdir in use)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     runners = {"detect3d": _run_detect3d, "depth": _run_depth}
@@ -248,10 +254,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.task == "detect3d":  # which overlap each (strict/loose) entry used
                 result = {**result, "_meta": {"min_overlap": overlap_meta(result)}}
             _write_json(args.json, result)
-    except KittiFormatError as e:
+    except (KittiFormatError, WorkdirBusyError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_INVALID_INPUT
     except OSError as e:
-        print(f"error: {e.filename or ''}: {e.strerror}", file=sys.stderr)
-        return EXIT_INVALID_INPUT
+        where = args.json or args.workdir or args.result_dir or args.prediction_dir
+        print(f"error: {error_line(e, where)}", file=sys.stderr)
+        return exit_code(e)
     return 0

@@ -34,6 +34,7 @@ from gac_jax.evaluation.depth_evaluator import (
 from gac_jax.evaluation.depth_metrics import format_depth_table
 from gac_jax.trained.depth import restore_depth_model
 from gac_jax.trained.run_config import load_workdir_config
+from gac_jax.training import workdir_lock
 
 BASELINES = ("ground-plane", "row-mean")
 
@@ -124,7 +125,25 @@ def evaluate_baseline(
 
 
 def run(args: argparse.Namespace) -> dict:
-    """Dispatch of ``evaluate.py --task depth --workdir/--baseline``; prints the table."""
+    """Dispatch of ``evaluate.py --task depth --workdir/--baseline``; prints the table.
+
+    Holds the workdir's lock when an output lies inside it (the model mode's default ``--out``,
+    ``--json``, the export of ``--runtime``).
+    """
+    if args.baseline:
+        outputs = [p for p in (args.out, args.json) if p]  # it writes nothing else
+    else:
+        outputs = [args.out, *([args.json] if args.json else [])]  # --out None: W/eval/...
+    with workdir_lock.hold_if_inside(args.workdir, *outputs):
+        result = _run(args)
+    if result["metrics"]:
+        print(format_depth_table(result["metrics"], result["num_scored"]), end="")
+    else:
+        print("no ground truth: predictions written, nothing scored")
+    return result
+
+
+def _run(args: argparse.Namespace) -> dict:
     if args.baseline:
         result = evaluate_baseline(args.baseline, args.data, args.split, args.workdir, args.out)
     else:
@@ -139,8 +158,4 @@ def run(args: argparse.Namespace) -> dict:
         result = evaluate_workdir(
             args.workdir, args.data, args.split, args.step, args.out, runtime, precision, export
         )
-    if result["metrics"]:
-        print(format_depth_table(result["metrics"], result["num_scored"]), end="")
-    else:
-        print("no ground truth: predictions written, nothing scored")
     return result

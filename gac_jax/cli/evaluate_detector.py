@@ -10,7 +10,8 @@ from ``W/config.json`` and ``W/anchor_priors.npz``, compiles the predict
 function once for the evaluation batch shape and writes one KITTI result file
 per frame to ``W/eval/<split>_step<N>/data/`` as it goes; an interrupted run
 resumes without redoing finished frames (``run.json`` there records the settings,
-and a folder made with other settings is refused rather than mixed). Then prints
+and a folder made with other settings is refused rather than mixed; the command holds the
+workdir's lock meanwhile, so it refuses a workdir that training writes to). Then prints
 the AP table (``--json``: the offline mode's JSON), frames/s split into model,
 post-processing and I/O time, and writes everything to ``metrics.json`` there.
 
@@ -40,6 +41,7 @@ from gac_jax.trained.detector import LoadedDetector, evaluator_for, load_detecto
 # imported from here by tests and benchmarks (explicit re-exports)
 from gac_jax.trained.detector import postprocess_config as postprocess_config
 from gac_jax.trained.run_config import load_run_config
+from gac_jax.training import workdir_lock
 
 
 def run_settings(
@@ -239,7 +241,13 @@ def run_model_mode(args, parser) -> dict:
         threads = limit_cpu_threads(args.threads)
     except ValueError as e:
         parser.error(str(e))
-    summary = evaluate_detector_workdir(
+    with workdir_lock.hold_if_inside(args.workdir, None):  # results go to W/eval/
+        summary = _evaluate(args, threads, runtime, precision)
+    return summary["metrics"]
+
+
+def _evaluate(args, threads: int, runtime: str, precision: str) -> dict:
+    return evaluate_detector_workdir(
         args.workdir,
         config_spec=args.config,
         overrides=args.overrides,
@@ -254,4 +262,3 @@ def run_model_mode(args, parser) -> dict:
         precision=precision,
         export_dir=args.export,
     )
-    return summary["metrics"]

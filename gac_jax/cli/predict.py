@@ -258,14 +258,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         threads = limit_cpu_threads(args.threads)
     except ValueError as e:
         parser.error(str(e))
+    from gac_jax.data.io_errors import error_line, exit_code
+    from gac_jax.training import workdir_lock
+
     try:
-        predict(args, threads)
-    except KittiFormatError as e:
+        with workdir_lock.hold_if_inside(args.workdir, args.out):  # W/predict by default
+            predict(args, threads)
+    except (KittiFormatError, workdir_lock.WorkdirBusyError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_INVALID_INPUT
     except OSError as e:
-        print(f"error: {e.filename or ''}: {e.strerror}", file=sys.stderr)
-        return EXIT_INVALID_INPUT
+        print(f"error: {error_line(e, args.out or args.workdir)}", file=sys.stderr)
+        return exit_code(e)
     return 0
 
 

@@ -11,6 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gac_jax.data.io_errors import naming
+
 
 class KittiFormatError(ValueError):
     """A KITTI-format file is missing or malformed. The message names the file (and line)."""
@@ -32,13 +34,14 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator:
     """Opens a temporary file beside ``path`` and renames it over ``path`` on success.
 
     A reader never sees a half-written file, and an interrupted write leaves
-    the previous version (if any) intact.
+    the previous version (if any) intact. A failed write (a full disk) raises an
+    ``OSError`` that names ``path``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, mode) as f:
+        with naming(path), os.fdopen(fd, mode) as f:
             yield f
         os.replace(tmp, path)
     except BaseException:

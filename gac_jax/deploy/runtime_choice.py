@@ -8,6 +8,7 @@ Decoding, NMS and hill-climbing stay the project's own code for every runtime.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 from pathlib import Path
@@ -19,6 +20,7 @@ from gac_jax.data.files import KittiFormatError
 from gac_jax.evaluation.depth_evaluator import NetworkPredictor
 from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
 from gac_jax.trained.detector import LoadedDetector
+from gac_jax.training import workdir_lock
 
 
 def resolve_runtime(runtime: str | None, precision: str | None) -> tuple[str, str]:
@@ -52,6 +54,25 @@ def default_export_dir(workdir: str | os.PathLike, detector: LoadedDetector) -> 
     return Path(workdir) / "export" / detector.tag
 
 
+def ensure_export_in(source, out: Path, workdir: str | os.PathLike | None) -> None:
+    """The export of ``source`` in ``out``, written when absent (holding the lock of
+    ``workdir`` when ``out`` lies inside it: an export is a write into the run folder; using
+    an existing one only reads). Raises KittiFormatError for a stale or corrupted one."""
+    from gac_jax.deploy.export.artifact import EXPORT_FILE, MODEL_FILE
+    from gac_jax.deploy.export.networks import ExportError
+    from gac_jax.deploy.export.sources import ensure_export
+
+    absent = not (out / EXPORT_FILE).exists() and not (out / MODEL_FILE).exists()
+    lock = workdir_lock.hold_if_inside(workdir, out) if absent else contextlib.nullcontext()
+    try:
+        with lock:
+            _, exported = ensure_export(source, out)
+    except ExportError as e:
+        raise KittiFormatError(out, str(e)) from None
+    if exported:
+        print(f"exported the network to {out}", flush=True)
+
+
 def use_runtime(
     evaluator: DetectionEvaluator,
     detector: LoadedDetector,
@@ -70,8 +91,7 @@ def use_runtime(
     """
     import time
 
-    from gac_jax.deploy.export.networks import ExportError
-    from gac_jax.deploy.export.sources import detector_source, ensure_export
+    from gac_jax.deploy.export.sources import detector_source
     from gac_jax.deploy.runtimes import DETECTOR_OUTPUTS, OnnxNetwork, RuntimeDetectionPredict
 
     t0 = time.perf_counter()
@@ -87,12 +107,7 @@ def use_runtime(
         else detector.weights.removeprefix("converted weights "),
         workdir=workdir,
     )
-    try:
-        _, exported = ensure_export(source, out)
-    except ExportError as e:
-        raise KittiFormatError(out, str(e)) from None
-    if exported:
-        print(f"exported the network to {out}", flush=True)
+    ensure_export_in(source, out, workdir)
     size = (config.data.height, config.data.width)
     network = OnnxNetwork(
         out / "model.onnx",
@@ -133,17 +148,11 @@ def runtime_predictor(
         if precision == "bf16":
             model = model.clone(dtype=jnp.bfloat16)
         return NetworkPredictor(model, variables)
-    from gac_jax.deploy.export.networks import ExportError
-    from gac_jax.deploy.export.sources import depth_source, ensure_export
+    from gac_jax.deploy.export.sources import depth_source
     from gac_jax.deploy.runtimes import DEPTH_OUTPUTS, OnnxNetwork, RuntimeDepthPredictor
 
     out = Path(export_dir) if export_dir else Path(workdir) / "export" / f"step{step}"
-    try:
-        _, exported = ensure_export(depth_source(config, model, variables, step=step), out)
-    except ExportError as e:
-        raise KittiFormatError(out, str(e)) from None
-    if exported:
-        print(f"exported the network to {out}", flush=True)
+    ensure_export_in(depth_source(config, model, variables, step=step), out, workdir)
     network = OnnxNetwork(
         out / "model.onnx",
         runtime,

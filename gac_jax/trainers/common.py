@@ -1,19 +1,59 @@
-"""Pieces both trainers share: the train-state plumbing (create replicated, resume, copy to
-the host, the NaN stop). Where the data is: :mod:`gac_jax.builders.datasets`."""
+"""Pieces both trainers share: the run folder of a run (lock, details file, disk failures),
+the train-state plumbing (create replicated, resume, copy to the host, the NaN stop). Where
+the data is: :mod:`gac_jax.builders.datasets`."""
 
 from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
 
 import jax
 import numpy as np
 import optax
 
-from gac_jax.training import parallel
-from gac_jax.training.checkpointing import Checkpoints
+from gac_jax.data.io_errors import DiskWriteError, describe, disk_failure
+from gac_jax.training import parallel, run_log, workdir_lock
+from gac_jax.training.checkpointing import Checkpoints, complete_steps
 from gac_jax.training.train_state import TrainState
 
 
 class NonFiniteLossError(RuntimeError):
     """Training produced NaN/inf; the last good checkpoint is kept."""
+
+
+@contextlib.contextmanager
+def training_run(workdir: Path) -> Iterator[None]:
+    """The run folder during a training run.
+
+    * Process 0 (the owner of the folder) holds its lock
+      (:mod:`gac_jax.training.workdir_lock`): a second writer stops at once.
+    * Library diagnostics go to ``WORKDIR/details.log`` (:mod:`gac_jax.training.run_log`).
+    * A disk failure anywhere (checkpoint, metrics, event files, result files) ends the run
+      with one :class:`~gac_jax.data.io_errors.DiskWriteError`: the path, the reason, the
+      free space, the last complete checkpoint (which a rerun resumes from) and the details
+      file, where the traceback is.
+    """
+    index = jax.process_index()
+    lock = workdir_lock.hold(workdir) if index == 0 else contextlib.nullcontext()
+    with lock, run_log.library_logs_to(run_log.details_path(workdir, index)) as details:
+        try:
+            yield
+        except Exception as e:
+            failure = disk_failure(e)
+            if failure is None:
+                raise
+            run_log.record_exception(e)
+            what = failure.message or describe(failure, failure.path or workdir)
+            steps = complete_steps(workdir / "checkpoints")
+            kept = (
+                f"kept checkpoint {steps[-1]} in {workdir / 'checkpoints'}"
+                if steps
+                else "no checkpoint was complete yet"
+            )
+            raise DiskWriteError(
+                failure.errno, failure.path or workdir, f"{what}; {kept} (details in {details})"
+            ) from e
 
 
 def create_train_state(

@@ -62,6 +62,7 @@ from gac_jax.trainers.common import (
     create_train_state,
     host_variables,
     restore_latest,
+    training_run,
 )
 from gac_jax.training import multiprocess, parallel, step_watchdog, stopping
 from gac_jax.training.checkpointing import Checkpoints
@@ -171,8 +172,17 @@ def make_train_step(model, tx, loss_opts: dict, mesh, state_sharding):
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
-    """Trains (resuming from ``workdir`` if it holds checkpoints) and evaluates on val."""
+    """Trains (resuming from ``workdir`` if it holds checkpoints) and evaluates on val.
+
+    The run holds ``workdir`` (its lock, details file and disk-failure report:
+    :func:`~gac_jax.trainers.common.training_run`) from start to end.
+    """
     workdir = Path(workdir)
+    with training_run(workdir):
+        return _train_and_evaluate(config, workdir)
+
+
+def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dict:
     is_main = jax.process_index() == 0
     if is_main:
         workdir.mkdir(parents=True, exist_ok=True)
@@ -201,7 +211,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     )
 
     # Restore.
-    checkpoints = Checkpoints(workdir, config.train.keep_checkpoints)
+    checkpoints = Checkpoints(workdir, config.train.keep_checkpoints, writer=True)
     state, start_step, _ = restore_latest(checkpoints, state, announce=is_main)
 
     # Step and evaluator.

@@ -29,6 +29,7 @@ from gac_jax.builders.detect3d import (
     train_transform,
 )
 from gac_jax.config import save_config
+from gac_jax.data.files import atomic_write
 from gac_jax.data.loader import DetectionArrays, Loader
 from gac_jax.data.sources import open_object_source
 from gac_jax.detection.anchor_filter import ground_mask_from_constants
@@ -43,6 +44,7 @@ from gac_jax.trainers.common import (
     create_train_state,
     host_variables,
     restore_latest,
+    training_run,
 )
 from gac_jax.training import multiprocess, parallel, step_watchdog, stopping
 from gac_jax.training.checkpointing import Checkpoints
@@ -97,8 +99,17 @@ def make_train_step(model, tx, constants, loss_cfg, config, mesh, state_sharding
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -> dict:
-    """Trains (resuming from ``workdir`` if it holds checkpoints) and evaluates on val."""
+    """Trains (resuming from ``workdir`` if it holds checkpoints) and evaluates on val.
+
+    The run holds ``workdir`` (its lock, details file and disk-failure report:
+    :func:`~gac_jax.trainers.common.training_run`) from start to end.
+    """
     workdir = Path(workdir)
+    with training_run(workdir):
+        return _train_and_evaluate(config, workdir)
+
+
+def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dict:
     is_main = jax.process_index() == 0
     if is_main:
         workdir.mkdir(parents=True, exist_ok=True)
@@ -151,7 +162,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
     del variables
 
     # Restore.
-    checkpoints = Checkpoints(workdir, config.train.keep_checkpoints)
+    checkpoints = Checkpoints(workdir, config.train.keep_checkpoints, writer=True)
     state, start_step, _ = restore_latest(checkpoints, state, announce=is_main)
 
     # Step and evaluator.
@@ -177,7 +188,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
         if is_main:
             print(format_table(out["metrics"]), flush=True)
             writer.write(step, kind="eval", **out)
-            with open(workdir / "results" / f"step_{step}" / "metrics.json", "w") as f:
+            with atomic_write(workdir / "results" / f"step_{step}" / "metrics.json") as f:
                 json.dump(out, f, indent=2)
             pictures = save_evaluation_pictures(
                 evaluator.source, result_dir, config.eval.num_pictures, classes

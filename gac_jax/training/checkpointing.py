@@ -5,11 +5,23 @@ document (``meta``: step, task, config digest ...). Saving is collective: in a
 multi-process run every process calls :meth:`Checkpoints.save` and orbax
 writes one copy. Restoring uses the *current* shardings of an abstract state,
 so a checkpoint written by N processes can be restored by M.
+
+The trainer's instance is the *writer* (``writer=True``): it removes the temporary folders
+(``N.orbax-checkpoint-tmp*``) that an interrupted or failed save left behind, checks before
+each save that the disk has room for a checkpoint of the size of the last one, and turns a
+failed write (a full disk, in orbax's background threads) into one
+:class:`~gac_jax.data.io_errors.DiskWriteError` naming the checkpoint, after removing its
+partial folder; the library noise of the failure goes to the run's details file
+(:mod:`gac_jax.training.run_log`). Readers (evaluation, export, tests) never touch
+temporary folders: a save may be in progress.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -17,14 +29,40 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from gac_jax.training import multiprocess
+from gac_jax.data.io_errors import DiskWriteError, describe, disk_failure, free_bytes, megabytes
+from gac_jax.training import multiprocess, run_log
 
 VARIABLE_COLLECTIONS = ("params", "batch_stats")
+TMP_MARKER = ".orbax-checkpoint-tmp"
+SPACE_MARGIN = 1.05  # a save needs the size of the last checkpoint, plus this much headroom
+
+
+def complete_steps(directory: str | os.PathLike) -> list[int]:
+    """Steps of the finished checkpoints in ``directory`` (orbax renames a checkpoint's
+    temporary folder to its step number when the save is complete)."""
+    try:
+        names = [p.name for p in Path(directory).iterdir() if p.is_dir()]
+    except OSError:
+        return []
+    return sorted(int(n) for n in names if n.isdigit())
+
+
+def folder_bytes(path: str | os.PathLike) -> int:
+    total = 0
+    for root, _, files in os.walk(path):
+        for name in files:
+            with contextlib.suppress(OSError):
+                total += os.lstat(os.path.join(root, name)).st_size
+    return total
 
 
 class Checkpoints:
-    def __init__(self, workdir: str | os.PathLike, max_to_keep: int = 3):
+    def __init__(self, workdir: str | os.PathLike, max_to_keep: int = 3, writer: bool = False):
         self.directory = Path(workdir).resolve() / "checkpoints"
+        self.writer = writer
+        self._size: tuple[int, int] | None = None  # (step, bytes) of the last complete one
+        if writer:  # it holds the run folder: no other save can be in progress
+            self._remove_partial(None)
         options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True)
         if jax.process_count() > 1:
             options.async_options = ocp.AsyncOptions(barrier_sync_fn=_barrier_or_exit())
@@ -40,7 +78,10 @@ class Checkpoints:
         args = ocp.args.Composite(
             state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(dict(meta or {}, step=step))
         )
-        with multiprocess.watch_peers(f"while checkpoint {step} was saved"):
+        if self.writer:
+            self._check_space(step)
+        watch = multiprocess.watch_peers(f"while checkpoint {step} was saved")
+        with watch, self._failed_write_as_error(step):
             self._manager.save(step, args=args, force=True)
             if wait:
                 self._manager.wait_until_finished()
@@ -126,7 +167,59 @@ class Checkpoints:
         return dict(restored.meta)
 
     def wait(self) -> None:
-        self._manager.wait_until_finished()
+        with self._failed_write_as_error(None):
+            self._manager.wait_until_finished()
+
+    def checkpoint_bytes(self) -> int | None:
+        """Size of the latest complete checkpoint on disk (None when there is none)."""
+        steps = complete_steps(self.directory)
+        if not steps:
+            return None
+        if self._size is None or self._size[0] != steps[-1]:
+            self._size = (steps[-1], folder_bytes(self.directory / str(steps[-1])))
+        return self._size[1]
+
+    def _check_space(self, step: int) -> None:
+        """Refuses to start a save that cannot fit (the size of the last checkpoint, known
+        from the disk, against the free space); the first save of a folder is not checked."""
+        needed, free = self.checkpoint_bytes(), free_bytes(self.directory)
+        if needed is None or free is None or free >= needed * SPACE_MARGIN:
+            return
+        path = self.directory / str(step)
+        raise DiskWriteError(
+            errno.ENOSPC,
+            path,
+            f"{path}: not enough space for checkpoint {step} ({megabytes(free)} free, a "
+            f"checkpoint takes about {megabytes(needed)})",
+        )
+
+    @contextlib.contextmanager
+    def _failed_write_as_error(self, step: int | None):
+        """Inside: library noise goes to the run's details file; a disk failure of the save
+        removes the partial checkpoint and raises one DiskWriteError naming it."""
+        with run_log.capture_stderr():
+            try:
+                yield
+            except Exception as e:
+                failure = disk_failure(e)
+                if failure is None or isinstance(e, DiskWriteError):
+                    raise
+                run_log.record_exception(e)
+                with contextlib.suppress(Exception):
+                    self._manager.close()  # let the background threads end, here
+                run_log.settle()  # and the tracebacks of writes still in flight
+                path = self.directory / str(step) if step is not None else self.directory
+                message = describe(failure, path)  # the free space when it failed
+                self._remove_partial(step)
+                raise DiskWriteError(failure.errno, path, message) from e
+
+    def _remove_partial(self, step: int | None) -> None:
+        """Removes the temporary folder of the failed save of ``step`` (all when None)."""
+        if jax.process_index() != 0:
+            return  # process 0 owns the folder (orbax's primary host)
+        pattern = f"{step}{TMP_MARKER}*" if step is not None else f"*{TMP_MARKER}*"
+        for partial in self.directory.glob(pattern):
+            shutil.rmtree(partial, ignore_errors=True)
 
     def close(self) -> None:
         self._manager.close()

@@ -17,6 +17,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from gac_jax.data.files import atomic_write
+from gac_jax.data.io_errors import naming
 
 
 class MetricsWriter:
@@ -65,7 +66,7 @@ class MetricsWriter:
             return
         record = {"step": int(step), "kind": kind, "time": round(time.time(), 3)}
         record.update({k: _jsonable(v) for k, v in values.items()})
-        with open(self.path, "a") as f:
+        with naming(self.path), open(self.path, "a") as f:
             f.write(json.dumps(record) + "\n")
             f.flush()
         if self.tensorboard is not None:

@@ -43,6 +43,8 @@ from typing import Any, Protocol
 import jax
 import numpy as np
 
+from gac_jax.training import workdir_lock
+
 EXIT_PEER_LOST = 3  # another process died or hung; restart all processes to resume
 EXIT_PREEMPTED = 75  # stopped on SIGTERM/SIGINT after a checkpoint (EX_TEMPFAIL: run again)
 EXIT_INTERRUPTED = 130  # a second SIGINT: stopped at once, without a checkpoint
@@ -273,6 +275,7 @@ def exit_once(message: str, code: int) -> None:
         with contextlib.suppress(Exception):
             sys.stdout.flush()
         _say(message)
+    workdir_lock.release_all()  # a clean hand-back, not a stale lock for the next run
     os._exit(code)
 
 

@@ -9,6 +9,7 @@ import threading
 
 import jax
 
+from gac_jax.training import workdir_lock
 from gac_jax.training.multiprocess import (
     EXIT_INTERRUPTED,
     _say,
@@ -68,6 +69,7 @@ def _watch_stop_signals(read_fd: int, multi: bool) -> None:
                 interrupts += 1
                 if interrupts > 1:
                     _say("second interrupt: stopping now, without a checkpoint")
+                    workdir_lock.release_all()
                     os._exit(EXIT_INTERRUPTED)
             elif signum != signal.SIGTERM:
                 continue

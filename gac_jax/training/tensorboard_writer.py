@@ -15,6 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gac_jax.data.io_errors import naming
+
 DIFFICULTIES = ("easy", "moderate", "hard")
 
 
@@ -58,7 +60,10 @@ class TensorBoardWriter:
         self._event_pb2, self._summary_pb2 = event_pb2, summary_pb2
         self.logdir = Path(logdir)
         self.logdir.mkdir(parents=True, exist_ok=True)
-        self._writer = EventFileWriter(str(self.logdir), flush_secs=30)
+        with naming(self.logdir):
+            self._writer = EventFileWriter(str(self.logdir), flush_secs=30)
+        # Failed writes (a full disk) name the event file (the writer's thread does not).
+        self.path = Path(getattr(self._writer, "_file_name", self.logdir))
         if resume_step:
             start = event_pb2.SessionLog(status=event_pb2.SessionLog.START)
             # TensorBoard drops the earlier events of steps >= this one.
@@ -66,7 +71,8 @@ class TensorBoardWriter:
 
     def _add(self, event) -> None:
         event.wall_time = time.time()
-        self._writer.add_event(event)
+        with naming(self.path):
+            self._writer.add_event(event)
 
     def scalars(self, step: int, values: Mapping[str, float]) -> None:
         """One scalar per tag (``{'train/loss': 0.3}``); non-finite values are kept as such."""
@@ -102,7 +108,9 @@ class TensorBoardWriter:
         self.image(step, tag, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
 
     def flush(self) -> None:
-        self._writer.flush()
+        with naming(self.path):
+            self._writer.flush()
 
     def close(self) -> None:
-        self._writer.close()
+        with naming(self.path):
+            self._writer.close()

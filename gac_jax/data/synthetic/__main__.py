@@ -12,6 +12,7 @@ import sys
 import time
 
 from gac_jax.data.files import KittiFormatError
+from gac_jax.data.io_errors import error_line
 from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
 from gac_jax.data.synthetic.writer import generate_dataset
 
@@ -124,11 +125,7 @@ def main(argv: list[str] | None = None) -> int:
             progress=not args.quiet,
         )
     except (ValueError, OSError, KittiFormatError) as e:
-        message = (
-            str(e)
-            if not isinstance(e, OSError) or not e.filename
-            else f"{e.filename}: {e.strerror}"
-        )
+        message = error_line(e, args.out) if isinstance(e, OSError) else str(e)
         print(f"error: {message}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -6,8 +6,10 @@
 The graph is emitted from the Flax variables and the config (:mod:`gac_jax.deploy.export.networks`):
 NCHW, BatchNorm folded, inputs ``images`` (B,H,W,3) float32, ``P2`` (B,3,4) and ``plane`` (B,4)
 (the frame's ground plane) with a dynamic batch. ``--checkpoint`` (converted weights,
-``python -m gac_jax.weights.convert``) is for the detector. Errors end with
-``error: <file>: <problem>`` and exit code 2.
+``python -m gac_jax.weights.convert``) is for the detector. An ``--out`` inside ``--workdir``
+is a write into that run folder: the command holds its lock
+(:mod:`gac_jax.training.workdir_lock`) and refuses a folder that another process writes to.
+Errors end with ``error: <file>: <problem>`` and exit code 2 (1: a full disk).
 """
 
 from __future__ import annotations
@@ -50,25 +52,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.opset < MIN_OPSET:
         parser.error(f"--opset must be >= {MIN_OPSET}")
     from gac_jax.data.files import KittiFormatError
+    from gac_jax.data.io_errors import error_line, exit_code
     from gac_jax.deploy.export.networks import ExportError
     from gac_jax.deploy.export.sources import export_source, load_source
+    from gac_jax.training import workdir_lock
 
     try:
-        source = load_source(
-            args.task,
-            workdir=args.workdir,
-            step=args.step,
-            checkpoint=args.checkpoint,
-            config_spec=args.config,
-            overrides=args.overrides,
-        )
-        meta = export_source(source, args.out, args.opset)
+        with workdir_lock.hold_if_inside(args.workdir, args.out):
+            source = load_source(
+                args.task,
+                workdir=args.workdir,
+                step=args.step,
+                checkpoint=args.checkpoint,
+                config_spec=args.config,
+                overrides=args.overrides,
+            )
+            meta = export_source(source, args.out, args.opset)
     except ExportError as e:
         print(f"error: {args.workdir or args.checkpoint}: {e}", file=sys.stderr)
         return EXIT_INVALID_INPUT
-    except KittiFormatError as e:
+    except (KittiFormatError, workdir_lock.WorkdirBusyError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_INVALID_INPUT
+    except OSError as e:
+        print(f"error: {error_line(e, args.out)}", file=sys.stderr)
+        return exit_code(e)
     h, w = source.image_size
     print(
         f"{args.task} {source.weights} -> {args.out}/{MODEL_FILE} ({meta['size_bytes'] / 1e6:.1f} "
