@@ -14,6 +14,8 @@ over several seeds (docs/ablations.md). ``multirig``: the embedded dataset of ei
 rigs (heights 1.2-2.4 m, pitch -6..+7 deg, other intrinsics and image sizes; two rigs held
 out into split ``val_heldout``, evaluate with ``evaluate.py --workdir W --split val_heldout``);
 ``kittirig`` (with ``multirig``): train on the KITTI-like rig's frames only (cross-rig).
+``fixedplane``: ignore the frames' ``planes/`` files (GAC, the anchor filter and the export
+get the level plane 1.65 m below the camera, as without files).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     variants = set((arg or "").split(",")) - {""}
     # Everything but 'tiny' is a variant of the KITTI config (the Table 3 rows, multiclass);
     # none of the settings below touches what those variants set.
-    local = {"tiny", "multirig", "kittirig"}
+    local = {"tiny", "multirig", "kittirig", "fixedplane"}
     passed = sorted(variants - local)
     try:
         c = load_config(str(Path(__file__).with_name("detect3d_kitti.py")) + ":" + ",".join(passed))
@@ -70,6 +72,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         c.data.synthetic.val_fraction = 0.2  # of the training rigs; held-out rigs: val_heldout
     if "kittirig" in variants:
         c.data.train_split = "train_kitti_rig"
+    if "fixedplane" in variants:
+        c.data.use_planes = False
 
     if "tiny" in variants:
         c.data.synthetic.num_frames = 16

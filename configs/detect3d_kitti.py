@@ -33,6 +33,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.source = "kitti"  # 'kitti' (folder or prepared TFDS) | 'synthetic'
     c.data.root = ""
     c.data.synthetic = synthetic_config()  # used with data.source='synthetic'
+    # Each frame's planes/NNNNNN.txt ground plane where it has one; False: always the level
+    # plane of model.gac.camera_height (the fixed-height arm of the ground-plane comparison)
+    c.data.use_planes = True
     c.data.train_split = "train"
     c.data.val_split = "val"
     c.data.classes = ("Car",)

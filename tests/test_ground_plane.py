@@ -316,3 +316,26 @@ def test_predict_cli_source_reads_the_kitti_layouts_plane(tilted_root):
     alone = tilted_root / "alone" / "000000.png"
     alone.write_bytes(image.read_bytes())
     assert "plane" not in ImageSource([alone], [calib])[0]  # then the config's level plane
+
+
+@pytest.mark.parametrize("variant, kept", [("tiny", True), ("tiny,fixedplane", False)])
+def test_use_planes_false_gives_the_level_plane_everywhere(tilted_root, variant, kept):
+    """``data.use_planes = False`` (variant ``fixedplane``): the train and eval transforms drop
+    the file's plane, so the loader falls back to the config's level plane."""
+    from pathlib import Path
+
+    from gac_jax.builders import detect3d as builders
+    from gac_jax.config import load_config
+    from gac_jax.data.loader import plane_array
+
+    repo = Path(__file__).resolve().parents[1]
+    c = load_config(str(repo / "configs" / f"detect3d_default.py:{variant}"))
+    sample = KittiObjectSource(tilted_root, "all")[0]
+    for transform in (builders.train_transform(c), builders.eval_transform(c)):
+        out = transform(dict(sample))
+        assert ("plane" in out) == kept
+        want = sample["plane"] if kept else geometry.level_plane(c.model.gac.camera_height)
+        if kept:  # (the train transform may flip: a -> -a)
+            assert np.allclose(np.abs(plane_array(out)), np.abs(want), atol=1e-6)
+        else:
+            np.testing.assert_allclose(plane_array(out, c.model.gac.camera_height), want)

@@ -36,10 +36,16 @@ def anchor_layout(config: ml_collections.ConfigDict) -> AnchorLayout:
     )
 
 
+def _plane_ops(data: ml_collections.ConfigDict) -> list:
+    """``[DropGroundPlane()]`` when the config ignores the frames' ``planes/`` files."""
+    return [] if data.get("use_planes", True) else [transforms.DropGroundPlane()]
+
+
 def eval_transform(config: ml_collections.ConfigDict, normalize: bool = True) -> transforms.Compose:
-    """Deterministic chain: crop top, resize to the input height, crop/pad the width."""
+    """Deterministic chain: crop top, resize to the input height, crop/pad the width (and
+    forget the frames' ground planes with ``data.use_planes = False``)."""
     d = config.data
-    ops = [
+    ops = _plane_ops(d) + [
         transforms.CropTop(d.crop_top),
         transforms.Resize(d.height),
         transforms.CropOrPadWidth(d.width),
@@ -51,7 +57,7 @@ def eval_transform(config: ml_collections.ConfigDict, normalize: bool = True) ->
 
 def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
     d = config.data
-    ops = [
+    ops = _plane_ops(d) + [
         transforms.FilterObjects(
             tuple(d.classes), max_occlusion=d.max_occlusion, min_depth=d.min_depth
         )

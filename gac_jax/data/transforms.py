@@ -426,6 +426,15 @@ class ReprojectBoxes:
         return {**sample, "objects": objects.replace(bbox=bbox, alpha=alpha)}
 
 
+class DropGroundPlane:
+    """Forgets the frame's ``planes/`` ground plane: the loader then gives the config's level
+    plane (``camera_height`` below a level camera), as for a frame without a file. The
+    "fixed 1.65 m" arm of the ground-plane comparison (``data.use_planes = False``)."""
+
+    def __call__(self, sample: Sample) -> Sample:
+        return {k: v for k, v in sample.items() if k != "plane"}
+
+
 @dataclasses.dataclass
 class Compose:
     """Applies ``transforms`` in order."""
