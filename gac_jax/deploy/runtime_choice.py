@@ -1,8 +1,9 @@
-"""Which runtime runs the network: ``--runtime jax|onnxruntime|openvino --precision f32|bf16``.
+"""Which runtime runs the network: ``--runtime jax|onnxruntime|openvino --precision f32|bf16|int8``.
 
 :func:`resolve_runtime` checks that a runtime/precision can run here; :func:`use_runtime`
 points a detector's evaluator at the exported network (exported into the run folder on first
-use, refused when stale), :func:`runtime_predictor` does the same for a depth network.
+use, refused when stale; for ``int8`` quantized beside it, :mod:`gac_jax.deploy.int8`),
+:func:`runtime_predictor` does the same for a depth network.
 Decoding, NMS and hill-climbing stay the project's own code for every runtime.
 """
 
@@ -16,6 +17,7 @@ import jax.numpy as jnp
 
 from gac_jax.builders.detect3d import filter_options
 from gac_jax.data.files import KittiFormatError
+from gac_jax.deploy.int8 import Int8Settings
 from gac_jax.evaluation.depth_evaluator import NetworkPredictor
 from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
 from gac_jax.trained.detector import LoadedDetector
@@ -52,6 +54,36 @@ def default_export_dir(workdir: str | os.PathLike, detector: LoadedDetector) -> 
     return Path(workdir) / "export" / detector.tag
 
 
+def network_file(source, out: Path, precision: str, int8: Int8Settings | None) -> Path:
+    """The file the runtime loads: ``out/model.onnx`` of ``source`` (an
+    :class:`~gac_jax.deploy.export.sources.ExportSource`; exported when the folder is empty,
+    refused when stale), or for ``int8`` the quantized ``out/model_int8.xml`` made from it.
+
+    Raises:
+      KittiFormatError: a stale or corrupted export, a failed export or quantization, a
+        ``--int8-keep-float`` pattern that matches no layer (naming the folder's file).
+    """
+    from gac_jax.deploy.export.networks import ExportError
+    from gac_jax.deploy.export.sources import ensure_export
+
+    try:
+        _, exported = ensure_export(source, out)
+    except ExportError as e:
+        raise KittiFormatError(out, str(e)) from None
+    if exported:
+        print(f"exported the network to {out}", flush=True)
+    if precision != "int8":
+        return out / "model.onnx"
+    from gac_jax.deploy.int8 import ensure_int8
+
+    try:
+        return ensure_int8(out, source.task, source.config, int8 or Int8Settings())
+    except ValueError as e:
+        if isinstance(e, KittiFormatError):
+            raise
+        raise KittiFormatError(out / "model.onnx", str(e)) from None
+
+
 def use_runtime(
     evaluator: DetectionEvaluator,
     detector: LoadedDetector,
@@ -61,17 +93,19 @@ def use_runtime(
     *,
     export_dir: str | os.PathLike | None = None,
     threads: int | None = None,
+    int8: Int8Settings | None = None,
 ) -> float:
     """Points ``evaluator`` at the exported network in ``runtime`` (the jitted decoding,
     top-k and host post-processing stay as they are); returns the load + warm-up seconds.
 
     The export in ``export_dir`` (default :func:`default_export_dir`) is written when absent
-    and refused when stale or corrupted (:func:`gac_jax.deploy.export.sources.ensure_export`).
+    and refused when stale or corrupted (:func:`gac_jax.deploy.export.sources.ensure_export`);
+    for ``int8`` the quantized network beside it is built when missing or stale
+    (:func:`gac_jax.deploy.int8.ensure_int8` with ``int8``, default settings if None).
     """
     import time
 
-    from gac_jax.deploy.export.networks import ExportError
-    from gac_jax.deploy.export.sources import detector_source, ensure_export
+    from gac_jax.deploy.export.sources import detector_source
     from gac_jax.deploy.runtimes import DETECTOR_OUTPUTS, OnnxNetwork, RuntimeDetectionPredict
 
     t0 = time.perf_counter()
@@ -87,15 +121,9 @@ def use_runtime(
         else detector.weights.removeprefix("converted weights "),
         workdir=workdir,
     )
-    try:
-        _, exported = ensure_export(source, out)
-    except ExportError as e:
-        raise KittiFormatError(out, str(e)) from None
-    if exported:
-        print(f"exported the network to {out}", flush=True)
     size = (config.data.height, config.data.width)
     network = OnnxNetwork(
-        out / "model.onnx",
+        network_file(source, out, precision, int8),
         runtime,
         precision,
         outputs=DETECTOR_OUTPUTS,
@@ -125,27 +153,23 @@ def runtime_predictor(
     runtime: str,
     precision: str,
     export_dir: str | Path | None = None,
+    int8: Int8Settings | None = None,
 ):
     """The depth predictor of a runtime: the jitted network (``jax``; ``bf16`` = bfloat16
     compute dtype) or the exported one (written to ``export_dir``, default
-    ``W/export/step<N>``, when absent; refused when stale or corrupted)."""
+    ``W/export/step<N>``, when absent; refused when stale or corrupted; ``int8``: how
+    :mod:`gac_jax.deploy.int8` calibrates the quantized network, default settings if None)."""
     if runtime == "jax":
         if precision == "bf16":
             model = model.clone(dtype=jnp.bfloat16)
         return NetworkPredictor(model, variables)
-    from gac_jax.deploy.export.networks import ExportError
-    from gac_jax.deploy.export.sources import depth_source, ensure_export
+    from gac_jax.deploy.export.sources import depth_source
     from gac_jax.deploy.runtimes import DEPTH_OUTPUTS, OnnxNetwork, RuntimeDepthPredictor
 
     out = Path(export_dir) if export_dir else Path(workdir) / "export" / f"step{step}"
-    try:
-        _, exported = ensure_export(depth_source(config, model, variables, step=step), out)
-    except ExportError as e:
-        raise KittiFormatError(out, str(e)) from None
-    if exported:
-        print(f"exported the network to {out}", flush=True)
+    source = depth_source(config, model, variables, step=step)
     network = OnnxNetwork(
-        out / "model.onnx",
+        network_file(source, out, precision, int8),
         runtime,
         precision,
         outputs=DEPTH_OUTPUTS,
