@@ -205,9 +205,12 @@ def check_keep_float(model, keep_float: tuple[str, ...]) -> None:
 
 def quantize_model(onnx_path: Path, feeds: list[dict], keep_float: tuple[str, ...] = ()):
     """The NNCF-quantized OpenVINO model of ``onnx_path`` (calibrated on ``feeds``)."""
+    import logging
+
     import nncf
     import openvino as ov
 
+    nncf.set_log_level(logging.WARNING)  # not one INFO line per layer kept in float32
     model = ov.Core().read_model(str(onnx_path))
     check_keep_float(model, keep_float)
     scope = nncf.IgnoredScope(patterns=list(keep_float), validate=False) if keep_float else None
