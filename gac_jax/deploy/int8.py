@@ -46,9 +46,10 @@ from gac_jax.deploy.export import artifact
 INT8_MODEL = "model_int8.xml"  # + model_int8.bin (weights)
 INT8_WEIGHTS = "model_int8.bin"
 PRESET = "mixed"
-# ~1 minute of calibration (statistics + bias correction) for the paper detector on a
-# 2-core CPU (~2 s per 288x1280 frame); the default-size networks take a few seconds
-DEFAULT_FRAMES = 32
+# calibration time is mostly NNCF's bias correction, roughly linear in the frames: 13 frames
+# took 104 s for the paper detector (R101, 288x1280) on a loaded 2-core EPYC, 2 s for the
+# default one; 16 is about a minute to a minute and a half for the paper detector
+DEFAULT_FRAMES = 16
 DEFAULT_SEED = 0
 # what a stored int8 model must agree on with the requested one (else it is rebuilt)
 COMPARED = ("source_sha256", "calibration", "preset", "keep_float")
@@ -86,7 +87,7 @@ def add_int8_arguments(parser) -> None:
         type=int,
         metavar="N",
         help=f"--precision int8: calibration images from the training split (default "
-        f"{DEFAULT_FRAMES}, about a minute for the paper detector on 2 cores)",
+        f"{DEFAULT_FRAMES}: about a minute for the paper detector on 2 cores)",
     )
     parser.add_argument(
         "--int8-seed", type=int, help=f"which calibration images (default seed {DEFAULT_SEED})"

@@ -1,6 +1,6 @@
 """Deployment runtimes: the exported ONNX networks under ONNX Runtime or OpenVINO (CPU).
 
-``--runtime jax|onnxruntime|openvino [--precision f32|bf16]`` of ``evaluate.py`` and
+``--runtime jax|onnxruntime|openvino [--precision f32|bf16|int8]`` of ``evaluate.py`` and
 ``python -m gac_jax.cli.predict`` select how the *network* runs; decoding, the anchor filter and
 top-k (:func:`gac_jax.detection.inference.select_candidates`, jitted), NMS and hill-climbing
 (:func:`gac_jax.detection.inference.postprocess`) and the depth post-processing
@@ -14,7 +14,10 @@ Zen 4 EPYC: ``vdpbf16ps`` dot products) or AMX-BF16 (Intel Sapphire Rapids and l
 matrix units, the big speed-up); elsewhere it is refused in one line. OpenVINO's own default
 on such CPUs is bf16, so ``f32`` is always requested explicitly. ONNX Runtime's CPU provider
 has no bf16 convolutions (refused); JAX's ``bf16`` is the model's compute dtype, which XLA:CPU
-emulates in float32 (rounded, not faster: a one-line note says so).
+emulates in float32 (rounded, not faster: a one-line note says so). ``int8`` is OpenVINO only:
+the NNCF-quantized IR of :mod:`gac_jax.deploy.int8` (its remaining float ops in float32),
+refused where the CPU plugin lists no ``INT8``, with a one-line note on a CPU without int8
+dot products (AVX512_VNNI, AVX_VNNI, AMX-INT8).
 """
 
 from __future__ import annotations
