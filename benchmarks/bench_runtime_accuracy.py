@@ -42,6 +42,7 @@ apply_default_xla_flags()
 
 from machine_info import describe_machine, one_line  # noqa: E402  (benchmarks/ on sys.path)
 
+from gac_jax.data.files import KittiFormatError  # noqa: E402
 from gac_jax.deploy.int8 import DEFAULT_FRAMES, Int8Settings  # noqa: E402
 from gac_jax.deploy.runtimes import RuntimeUnavailableError, check_runtime  # noqa: E402
 from gac_jax.evaluation.kitti_object import DIFFICULTIES  # noqa: E402
@@ -117,6 +118,17 @@ def available(args) -> list[Combo]:
     return combos
 
 
+@contextlib.contextmanager
+def skipped_on_error():
+    """Yields a list that gets the error when the block raises KittiFormatError (printed)."""
+    errors: list[str] = []
+    try:
+        yield errors
+    except KittiFormatError as e:
+        errors.append(str(e))
+        print(f"  skip: {e}", file=sys.stderr)
+
+
 def run_detector(workdir, combo: Combo, tmp: Path, split, threads, where=None) -> dict:
     """``evaluate.py --task detect3d`` model mode under ``combo`` (results in ``tmp_<combo>``,
     the export in ``tmp_export``), quietly; returns its summary."""
@@ -141,7 +153,10 @@ def guard_detector(workdir: str, split, threads, tmp: Path, combos: list[Combo])
     for combo in combos:
         label = combo.label
         print(f"\n=== detector, {label} ===", flush=True)
-        summary = run_detector(workdir, combo, tmp / "det", split, threads)
+        with skipped_on_error() as skipped:  # e.g. a --keep-float scope this net lacks
+            summary = run_detector(workdir, combo, tmp / "det", split, threads)
+        if skipped:
+            continue
         runs[label] = {"ap": car_ap40(summary["metrics"]), "speed": summary["speed"]}
         print(f"  model {summary['speed'].get('model_ms_median', float('nan')):.1f} ms/frame")
     ref = runs["jax f32"]["ap"]
@@ -167,7 +182,7 @@ def guard_depth(workdir: str, split, tmp: Path, combos: list[Combo]) -> dict:
     for combo in combos:
         label = combo.label
         print(f"\n=== depth, {label} ===", flush=True)
-        with contextlib.redirect_stdout(io.StringIO()):
+        with contextlib.redirect_stdout(io.StringIO()), skipped_on_error() as skipped:
             result = evaluate_workdir(
                 workdir,
                 split=split,
@@ -177,6 +192,8 @@ def guard_depth(workdir: str, split, tmp: Path, combos: list[Combo]) -> dict:
                 export_dir=tmp / "depth_export",
                 int8=combo.int8,
             )
+        if skipped:
+            continue
         m = result["metrics"]
         runs[label] = {"silog": float(m["silog"]), "abs_rel": float(m["abs_rel"])}
     ref = runs["jax f32"]
