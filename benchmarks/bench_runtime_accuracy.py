@@ -2,13 +2,24 @@
 
 Evaluates a trained detection workdir (Car AP|R40, every entry) and/or a trained depth
 workdir (SILog, absRel) on the run's val split with ``jax f32`` (the reference), ``jax bf16``,
-``onnxruntime f32``, ``openvino f32`` and ``openvino bf16`` (those that can run here), through
-the same code as ``evaluate.py --runtime ... --precision ...``, and prints each metric, its
-difference to ``jax f32`` and the verdict of the rule in docs/inference.md: a precision is
-recommended only if every Car AP|R40 entry stays within 0.5 AP (depth: SILog within 0.2) of
-float32.
+``onnxruntime f32``, ``openvino f32``, ``openvino bf16``, ``openvino int8`` (NNCF, calibrated
+on ``--int8-frames`` training frames) and, per ``--keep-float REGEX[,REGEX...]``, the mixed
+int8 network with those layers in float32 (those that can run here; ``--combos`` picks), through
+the same code as ``evaluate.py --runtime ... --precision ... [--int8-keep-float ...]``, and
+prints each metric, its difference to ``jax f32`` and the verdict of the rule in
+docs/inference.md: a precision is recommended only if every Car AP|R40 entry stays within 0.5
+AP (depth: SILog within 0.2) of float32.
+
+``--matched-workdir W`` (optionally ``--checkpoint C --config F`` for converted weights, and
+``--data``/``--matched-split`` for the frames, default the real frames in ``tests/data/kitti``)
+compares *detections* instead of AP: each runtime's detections are matched to jax float32's
+(same class, 2D IoU >= 0.5, greedy by score) and the matched share, the largest score and
+3D-location differences are reported (for models whose val split is not here, e.g. the
+converted authors' model on real frames).
 
     python benchmarks/bench_runtime_accuracy.py [--detect3d-workdir W] [--depth-workdir W]
+        [--matched-workdir W [--checkpoint C --config F] [--data D] [--matched-split S]]
+        [--combos jax:f32,openvino:int8,...] [--keep-float REGEX[,REGEX]] [--int8-frames N]
         [--split S] [--threads N] [--json OUT]
 """
 
@@ -16,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import io
 import json
 import sys
@@ -30,6 +42,8 @@ apply_default_xla_flags()
 
 from machine_info import describe_machine, one_line  # noqa: E402  (benchmarks/ on sys.path)
 
+from gac_jax.data.files import KittiFormatError  # noqa: E402
+from gac_jax.deploy.int8 import DEFAULT_FRAMES, Int8Settings  # noqa: E402
 from gac_jax.deploy.runtimes import RuntimeUnavailableError, check_runtime  # noqa: E402
 from gac_jax.evaluation.kitti_object import DIFFICULTIES  # noqa: E402
 
@@ -39,7 +53,11 @@ COMBOS = (
     ("onnxruntime", "f32"),
     ("openvino", "f32"),
     ("openvino", "bf16"),
+    ("openvino", "int8"),
 )
+REPO = Path(__file__).resolve().parents[1]
+REAL_FRAMES = REPO / "tests" / "data" / "kitti" / "object"  # split "labeled"
+MATCH_IOU = 0.5
 AP_TOLERANCE = 0.5  # AP points, every Car AP|R40 entry
 SILOG_TOLERANCE = 0.2
 
@@ -53,35 +71,92 @@ def car_ap40(metrics: dict) -> dict[str, float]:
     return out
 
 
-def available() -> list[tuple[str, str]]:
+@dataclasses.dataclass(frozen=True)
+class Combo:
+    """One runtime/precision of the guard; ``int8``: the calibration (int8 only)."""
+
+    runtime: str
+    precision: str
+    int8: Int8Settings | None = None
+
+    @property
+    def label(self) -> str:
+        keep = self.int8.keep_float if self.int8 else ()
+        return f"{self.runtime} {self.precision}" + (f" f32[{','.join(keep)}]" if keep else "")
+
+    @property
+    def slug(self) -> str:
+        """A folder name for the label (long scopes shortened to a hash)."""
+        import hashlib
+
+        slug = "".join(c if c.isalnum() else "_" for c in self.label)
+        if len(slug) > 60:
+            slug = slug[:40] + "_" + hashlib.sha1(self.label.encode()).hexdigest()[:10]
+        return slug
+
+
+def available(args) -> list[Combo]:
+    """The combos of ``--combos`` (default all) that run here, int8 ones per ``--keep-float``."""
+    wanted = COMBOS
+    if args.combos:
+        wanted = [tuple(c.split(":")) for c in args.combos.split(",")]
     combos = []
-    for runtime, precision in COMBOS:
+    for runtime, precision in wanted:
         try:
             check_runtime(runtime, precision)
         except RuntimeUnavailableError as e:
             print(f"skip {runtime} {precision}: {e}")
             continue
-        combos.append((runtime, precision))
+        if precision != "int8":
+            combos.append(Combo(runtime, precision))
+            continue
+        for keep in ["", *args.keep_float]:
+            scope = tuple(p for p in keep.split(",") if p)
+            combos.append(Combo(runtime, precision, Int8Settings(args.int8_frames, 0, scope)))
+    if not combos or combos[0] != Combo("jax", "f32"):
+        combos.insert(0, Combo("jax", "f32"))  # the reference
     return combos
 
 
-def guard_detector(workdir: str, split, threads, tmp: Path) -> dict:
+@contextlib.contextmanager
+def skipped_on_error():
+    """Yields a list that gets the error when the block raises KittiFormatError (printed)."""
+    errors: list[str] = []
+    try:
+        yield errors
+    except KittiFormatError as e:
+        errors.append(str(e))
+        print(f"  skip: {e}", file=sys.stderr)
+
+
+def run_detector(workdir, combo: Combo, tmp: Path, split, threads, where=None) -> dict:
+    """``evaluate.py --task detect3d`` model mode under ``combo`` (results in ``tmp_<combo>``,
+    the export in ``tmp_export``), quietly; returns its summary."""
     from gac_jax.cli.evaluate_detector import evaluate_detector_workdir
 
+    with contextlib.redirect_stdout(io.StringIO()):
+        return evaluate_detector_workdir(
+            workdir,
+            **(where or {}),
+            split=split,
+            threads=threads,
+            out_dir=Path(f"{tmp}_{combo.slug}"),
+            runtime=combo.runtime,
+            precision=combo.precision,
+            export_dir=Path(f"{tmp}_export"),
+            int8=combo.int8,
+        )
+
+
+def guard_detector(workdir: str, split, threads, tmp: Path, combos: list[Combo]) -> dict:
     runs = {}
-    for runtime, precision in available():
-        label = f"{runtime} {precision}"
+    for combo in combos:
+        label = combo.label
         print(f"\n=== detector, {label} ===", flush=True)
-        with contextlib.redirect_stdout(io.StringIO()):
-            summary = evaluate_detector_workdir(
-                workdir,
-                split=split,
-                threads=threads,
-                out_dir=tmp / f"det_{runtime}_{precision}",
-                runtime=runtime,
-                precision=precision,
-                export_dir=tmp / "det_export",
-            )
+        with skipped_on_error() as skipped:  # e.g. a --keep-float scope this net lacks
+            summary = run_detector(workdir, combo, tmp / "det", split, threads)
+        if skipped:
+            continue
         runs[label] = {"ap": car_ap40(summary["metrics"]), "speed": summary["speed"]}
         print(f"  model {summary['speed'].get('model_ms_median', float('nan')):.1f} ms/frame")
     ref = runs["jax f32"]["ap"]
@@ -100,22 +175,25 @@ def guard_detector(workdir: str, split, threads, tmp: Path) -> dict:
     return {"runs": runs, "verdicts": verdicts}
 
 
-def guard_depth(workdir: str, split, tmp: Path) -> dict:
+def guard_depth(workdir: str, split, tmp: Path, combos: list[Combo]) -> dict:
     from gac_jax.cli.evaluate_depth import evaluate_workdir
 
     runs = {}
-    for runtime, precision in available():
-        label = f"{runtime} {precision}"
+    for combo in combos:
+        label = combo.label
         print(f"\n=== depth, {label} ===", flush=True)
-        with contextlib.redirect_stdout(io.StringIO()):
+        with contextlib.redirect_stdout(io.StringIO()), skipped_on_error() as skipped:
             result = evaluate_workdir(
                 workdir,
                 split=split,
-                out=tmp / f"depth_{runtime}_{precision}",
-                runtime=runtime,
-                precision=precision,
+                out=tmp / f"depth_{combo.slug}",
+                runtime=combo.runtime,
+                precision=combo.precision,
                 export_dir=tmp / "depth_export",
+                int8=combo.int8,
             )
+        if skipped:
+            continue
         m = result["metrics"]
         runs[label] = {"silog": float(m["silog"]), "abs_rel": float(m["abs_rel"])}
     ref = runs["jax f32"]
@@ -131,25 +209,105 @@ def guard_depth(workdir: str, split, tmp: Path) -> dict:
     return {"runs": runs, "verdicts": verdicts}
 
 
+def match_detections(reference: Path, other: Path) -> dict:
+    """Detections of ``other`` matched to ``reference``'s (result folders of the same frames):
+    same class, 2D IoU >= 0.5, greedily in the reference's score order."""
+    import numpy as np
+
+    from gac_jax.data.kitti import read_label
+    from gac_jax.detection.nms import box_iou_matrix
+
+    n_ref = n_other = matched = 0
+    score_d, loc_d = [], []
+    for path in sorted(reference.glob("*.txt")):
+        a, b = read_label(path, True), read_label(other / path.name, True)
+        n_ref, n_other = n_ref + len(a), n_other + len(b)
+        if not len(a) or not len(b):
+            continue
+        iou = box_iou_matrix(a.bbox, b.bbox)
+        iou[a.type[:, None] != b.type[None, :]] = 0.0
+        free = np.ones(len(b), bool)
+        for i in np.argsort(-a.score):
+            j = int(np.argmax(np.where(free, iou[i], -1.0)))
+            if free[j] and iou[i, j] >= MATCH_IOU:
+                free[j] = False
+                matched += 1
+                score_d.append(abs(float(a.score[i] - b.score[j])))
+                loc_d.append(float(np.linalg.norm(a.location[i] - b.location[j])))
+    return {
+        "reference_detections": n_ref,
+        "detections": n_other,
+        "matched": matched,
+        "matched_share": matched / max(n_ref, 1),
+        "max_score_diff": max(score_d, default=0.0),
+        "median_score_diff": float(np.median(score_d)) if score_d else 0.0,
+        "max_location_diff_m": max(loc_d, default=0.0),
+        "median_location_diff_m": float(np.median(loc_d)) if loc_d else 0.0,
+    }
+
+
+def guard_matched(args, tmp: Path, combos: list[Combo]) -> dict:
+    """Every combo on ``--data``'s ``--matched-split``, detections matched to jax f32's."""
+    dirs = {}
+    for combo in combos:
+        print(f"\n=== matched detections, {combo.label} ===", flush=True)
+        where = {"config_spec": args.config, "checkpoint": args.checkpoint}
+        where |= {"overrides": args.matched_overrides, "data_root": args.data}
+        summary = run_detector(
+            args.matched_workdir, combo, tmp / "matched", args.matched_split, args.threads, where
+        )
+        dirs[combo.label] = Path(summary["result_dir"])
+    ref = dirs["jax f32"]
+    out = {}
+    print(
+        f"\n{'runtime':28s} {'dets':>5s} {'matched':>8s} {'max|dscore|':>11s} {'max|dxyz| m':>11s}"
+    )
+    for label, d in dirs.items():
+        m = out[label] = match_detections(ref, d)
+        print(
+            f"{label:28s} {m['detections']:5d} {m['matched']:4d}/{m['reference_detections']:<4d}"
+            f"{m['max_score_diff']:11.3f} {m['max_location_diff_m']:11.3f}"
+        )
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--detect3d-workdir", help="a trained detection workdir")
     parser.add_argument("--depth-workdir", help="a trained depth workdir")
+    parser.add_argument("--matched-workdir", help="detections matched to jax f32's (see above)")
+    parser.add_argument("--checkpoint", help="--matched-workdir: converted weights")
+    parser.add_argument("--config", help="--matched-workdir: config of --checkpoint")
+    parser.add_argument("--data", default=str(REAL_FRAMES), help="--matched-workdir: frames")
+    parser.add_argument("--matched-split", default="labeled", help="--matched-workdir: split")
+    parser.add_argument("--matched-overrides", nargs="*", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--combos", help="runtime:precision,... (default: all that run here)")
+    parser.add_argument(
+        "--keep-float",
+        action="append",
+        default=[],
+        metavar="REGEX[,REGEX]",
+        help="an int8 row with these layers kept in float32 (repeatable)",
+    )
+    parser.add_argument("--int8-frames", type=int, default=DEFAULT_FRAMES)
     parser.add_argument("--split", help="default: each run's val split")
     parser.add_argument("--threads", type=int)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
-    if not args.detect3d_workdir and not args.depth_workdir:
-        parser.error("give --detect3d-workdir and/or --depth-workdir")
-    print(one_line(describe_machine("numpy", "jax", "onnxruntime", "openvino")), flush=True)
+    if not (args.detect3d_workdir or args.depth_workdir or args.matched_workdir):
+        parser.error("give --detect3d-workdir, --depth-workdir and/or --matched-workdir")
+    print(one_line(describe_machine("numpy", "jax", "onnxruntime", "openvino", "nncf")))
+    combos = available(args)
     out = {}
     with tempfile.TemporaryDirectory(prefix="bench_runtime_accuracy_") as tmp:
         if args.detect3d_workdir:
             out["detect3d"] = guard_detector(
-                args.detect3d_workdir, args.split, args.threads, Path(tmp)
+                args.detect3d_workdir, args.split, args.threads, Path(tmp), combos
             )
         if args.depth_workdir:
-            out["depth"] = guard_depth(args.depth_workdir, args.split, Path(tmp))
+            out["depth"] = guard_depth(args.depth_workdir, args.split, Path(tmp), combos)
+        if args.matched_workdir:
+            out["matched"] = guard_matched(args, Path(tmp), combos)
     if args.json:
         args.json.write_text(json.dumps(out, indent=2))
 

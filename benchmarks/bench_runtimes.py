@@ -7,6 +7,10 @@ exported (:mod:`gac_jax.deploy.export`) and run as
 * ``jax f32``: the jitted Flax model (the reference of every ratio); ``jax bf16`` with
   ``--jax-bf16`` (Flax compute dtype bfloat16),
 * ``onnxruntime f32``, ``openvino f32`` and ``openvino bf16`` (where the CPU has native bf16),
+* ``openvino int8``: the export quantized by NNCF as ``--precision int8`` does (detector:
+  calibrated on ``--int8-frames`` of the real KITTI frames through the eval transform; depth:
+  on random images, timing only), and per ``--keep-float REGEX[,REGEX]`` the mixed network
+  with those layers in float32 (``openvino int8 f32[...]``),
 
 with the calls interleaved (every round runs each path once, so a shared machine's load hits
 them alike). Detector: the *full path* of one real KITTI frame, image file -> KITTI objects
@@ -15,11 +19,13 @@ the network call alone; depth net: the network call. Weights are random (timing 
 threshold 0 and ``top_k`` 100, so 100 candidates go through NMS and hill-climbing: a crowded
 frame; random weights would otherwise send a varying number, up to the configs' cap of 4096,
 through hill-climbing, which dominates and differs between runtimes). Reported:
-medians of wall and process-CPU ms, and the wall ratio to ``jax f32``; plus the CPU model and
-its AMX / AVX512_BF16 flags, and the 1-minute load average.
+medians of wall and process-CPU ms, the wall ratio to ``jax f32`` and, per detector runtime,
+the non-network part of the frame (full path minus network medians); plus the CPU model and
+its AMX / AVX512_BF16 / int8 dot-product flags, and the 1-minute load average.
 
     python benchmarks/bench_runtimes.py [--configs paper,default] [--nets detect3d,depth]
-        [--rounds 5] [--threads N] [--jax-bf16] [--json OUT]
+        [--rounds 5] [--threads N] [--jax-bf16] [--no-int8] [--int8-frames N]
+        [--keep-float REGEX[,REGEX]] [--only LABEL,...] [--json OUT]
 """
 
 from __future__ import annotations
@@ -70,6 +76,35 @@ def random_variables(model, config, init, seed: int = 0) -> dict:
     return jax.tree_util.tree_map_with_path(f, shapes)
 
 
+def quantized(task, config, onnx_path: Path, size, keep, args, tmp: Path) -> Path:
+    """``onnx_path`` quantized by NNCF as ``--precision int8`` does (``keep``: layers kept in
+    float32); the detector calibrated on real frames (eval transform), depth on noise."""
+    import numpy as np
+    import openvino as ov
+
+    from gac_jax.deploy.int8 import calibration_frames, quantize_model
+
+    if task == "detect3d":
+        feeds, _ = calibration_frames(task, config, args.int8_frames, 0)
+    else:
+        rng = np.random.default_rng(1)
+        P2 = np.array([[[721.5, 0, size[1] / 2, 45], [0, 721.5, size[0] / 2, 0], [0, 0, 1, 0]]])
+        feeds = [
+            {"images": rng.normal(size=(1, *size, 3)).astype(np.float32), "P2": P2.astype("f4")}
+            for _ in range(args.int8_frames)
+        ]
+    t0 = time.perf_counter()
+    model = quantize_model(onnx_path, feeds, keep)
+    out = tmp / f"{onnx_path.stem}_int8_{len(keep)}_{abs(hash(keep))}.xml"
+    ov.save_model(model, str(out), compress_to_fp16=False)
+    print(
+        f"  quantized ({len(feeds)} frames, float32 {keep or 'none'}): "
+        f"{time.perf_counter() - t0:.0f} s",
+        flush=True,
+    )
+    return out
+
+
 def paths_for(task, name, args, tmp: Path):
     """``{label: callable}`` of the timed calls of one network/config (built and warmed up)."""
     import jax
@@ -116,13 +151,29 @@ def paths_for(task, name, args, tmp: Path):
     networks = {}
     combos = [("jax", "f32")] + ([("jax", "bf16")] if args.jax_bf16 else [])
     combos += [("onnxruntime", "f32"), ("openvino", "f32"), ("openvino", "bf16")]
+    if not args.no_int8:
+        combos += [("openvino", "int8")]
+        combos += [("openvino", f"int8 f32[{keep}]") for keep in args.keep_float]
+    if args.only:
+        combos = [c for c in combos if c[0] == "jax" or f"{c[0]} {c[1]}" in args.only.split(",")]
     for runtime, precision in combos:
         try:
-            check_runtime(runtime, precision)
+            check_runtime(runtime, precision.split()[0])
         except Exception as e:  # noqa: BLE001 - reported, not timed
             print(f"  skip {runtime} {precision}: {e}")
             continue
-        if runtime == "jax":
+        if precision.startswith("int8"):
+            keep = tuple(p for p in precision[len("int8 f32[") : -1].split(",") if p)
+            networks[(runtime, precision)] = OnnxNetwork(
+                quantized(task, config, path, size, keep, args, tmp),
+                runtime,
+                "int8",
+                outputs=outputs,
+                image_size=size,
+                threads=args.threads,
+                batch_size=1,
+            )
+        elif runtime == "jax":
             m = model.clone(dtype=jnp.bfloat16 if precision == "bf16" else jnp.float32)
             networks[(runtime, precision)] = m
         else:
@@ -213,15 +264,27 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--threads", type=int, help="runtime threads (default: usable cores)")
     p.add_argument("--jax-bf16", action="store_true", help="also time the jitted bf16 model")
+    p.add_argument("--no-int8", action="store_true", help="skip the int8 rows")
+    p.add_argument("--int8-frames", type=int, default=13, help="calibration frames (int8)")
+    p.add_argument(
+        "--keep-float",
+        action="append",
+        default=[],
+        metavar="REGEX[,REGEX]",
+        help="an int8 row with these layers in float32 (repeatable)",
+    )
+    p.add_argument("--only", help="time only these non-jax rows, e.g. 'openvino int8'")
     p.add_argument("--json", type=Path)
     args = p.parse_args()
 
     info = describe_machine("jax", "onnxruntime", "openvino", "onnx")
     flags = cpu_flags()
     print(one_line(info))
+    yes = {True: "yes", False: "no"}
     print(
-        f"CPU {flags['cpu']}: AMX-BF16 {'yes' if flags['amx_bf16'] else 'no'}, "
-        f"AVX512_BF16 {'yes' if flags['avx512_bf16'] else 'no'}"
+        f"CPU {flags['cpu']}: AMX-BF16 {yes[flags['amx_bf16']]}, AMX-INT8 "
+        f"{yes[flags['amx_int8']]}, AVX512_BF16 {yes[flags['avx512_bf16']]}, int8 dot products "
+        f"(VNNI/AMX) {yes[flags['int8_dot']]}"
     )
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_runtimes_") as tmp:
@@ -264,6 +327,20 @@ def main() -> None:
                             f"x{ratio:5.2f} vs jax f32",
                             flush=True,
                         )
+                for label in sorted({k[0] for k in calls if k[1] == "full path"}):
+                    host = float(np.median(wall[(label, "full path")])) - float(
+                        np.median(wall[(label, "network")])
+                    )
+                    rows.append(
+                        {
+                            "net": task,
+                            "config": name,
+                            "path": "non-network",
+                            "runtime": label,
+                            "wall_ms": host,
+                        }
+                    )
+                    print(f"  non-network part {label:17s} {host:8.1f} ms (full - network)")
     info["load_avg_1min_end"] = round(__import__("os").getloadavg()[0], 2)
     print(f"\nload average (1 min) at the end: {info['load_avg_1min_end']}")
     if args.json:

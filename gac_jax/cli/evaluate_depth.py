@@ -18,11 +18,13 @@ data, :mod:`gac_jax.evaluation.depth_baselines`).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
 from gac_jax.data import transforms
 from gac_jax.data.files import KittiFormatError, atomic_write
+from gac_jax.deploy.int8 import Int8Settings, int8_settings
 from gac_jax.deploy.runtime_choice import resolve_runtime, run_suffix, runtime_predictor
 from gac_jax.evaluation.depth_baselines import RowMeanPredictor, fit_row_log_depth
 from gac_jax.evaluation.depth_evaluator import (
@@ -67,6 +69,7 @@ def evaluate_workdir(
     runtime: str = "jax",
     precision: str = "f32",
     export_dir: str | Path | None = None,
+    int8: Int8Settings | None = None,
 ) -> dict:
     """Runs a trained depth model over a split; returns the evaluator's result dict.
 
@@ -81,11 +84,13 @@ def evaluate_workdir(
     out = Path(out) if out else Path(workdir) / "eval" / name
     evaluator = builders.make_evaluator(config, source)
     predictor = runtime_predictor(
-        config, model, variables, step, workdir, runtime, precision, export_dir
+        config, model, variables, step, workdir, runtime, precision, export_dir, int8
     )
     result = evaluator.evaluate(predictor, out / "depth", out / "pictures")
     result["step"] = step
-    result["runtime"] = {"runtime": runtime, "precision": precision}
+    result["runtime"] = {"runtime": runtime, "precision": precision} | (
+        {"int8": dataclasses.asdict(int8 or Int8Settings())} if precision == "int8" else {}
+    )
     with atomic_write(out / "metrics.json") as f:
         json.dump(result, f, indent=2)
     print(
@@ -151,11 +156,23 @@ def _run(args: argparse.Namespace) -> dict:
         runtime, precision = resolve_runtime(
             getattr(args, "runtime", None), getattr(args, "precision", None)
         )
+        try:
+            int8 = int8_settings(args)
+        except ValueError as e:
+            raise KittiFormatError("evaluate.py", str(e)) from None
         if export and runtime == "jax":
             raise KittiFormatError(
                 export, "--export only applies with --runtime onnxruntime|openvino"
             )
         result = evaluate_workdir(
-            args.workdir, args.data, args.split, args.step, args.out, runtime, precision, export
+            args.workdir,
+            args.data,
+            args.split,
+            args.step,
+            args.out,
+            runtime,
+            precision,
+            export,
+            int8,
         )
     return result

@@ -21,6 +21,7 @@ Loading the detector (config + model + anchors/priors + weights of a workdir):
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -33,6 +34,7 @@ from gac_jax.builders.datasets import prepare_dataset
 from gac_jax.cli.model_mode import limit_cpu_threads, xla_thread_count
 from gac_jax.data.files import KittiFormatError, atomic_write
 from gac_jax.data.sources import open_object_source
+from gac_jax.deploy.int8 import Int8Settings, int8_settings
 from gac_jax.deploy.runtime_choice import resolve_runtime, run_suffix, use_runtime
 from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.kitti_object import format_table
@@ -51,21 +53,26 @@ def run_settings(
     dtype,
     runtime: str = "jax",
     precision: str = "f32",
+    int8: Int8Settings | None = None,
 ) -> dict:
     """What the result files of a run depend on (compared when resuming)."""
     c = detector.config
-    return {
-        # the workdir's own checkpoints by step (the workdir may move), converted ones by path
-        "weights": detector.tag if detector.step is not None else detector.weights,
-        "split": split,
-        "data_root": str(Path(root).resolve()),
-        "dtype": jnp.dtype(dtype).name,
-        "input": {k: c.data[k] for k in ("crop_top", "height", "width")},
-        "classes": list(c.data.classes),
-        "anchors": c.anchors.to_dict(),
-        "model": c.model.to_dict(),
-        "eval": {k: v for k, v in c.eval.to_dict().items() if k != "num_pictures"},
-    } | ({"runtime": runtime, "precision": precision} if runtime != "jax" else {})
+    return (
+        {
+            # the workdir's own checkpoints by step (the workdir may move), converted ones by path
+            "weights": detector.tag if detector.step is not None else detector.weights,
+            "split": split,
+            "data_root": str(Path(root).resolve()),
+            "dtype": jnp.dtype(dtype).name,
+            "input": {k: c.data[k] for k in ("crop_top", "height", "width")},
+            "classes": list(c.data.classes),
+            "anchors": c.anchors.to_dict(),
+            "model": c.model.to_dict(),
+            "eval": {k: v for k, v in c.eval.to_dict().items() if k != "num_pictures"},
+        }
+        | ({"runtime": runtime, "precision": precision} if runtime != "jax" else {})
+        | ({"int8": dataclasses.asdict(int8)} if precision == "int8" and int8 else {})
+    )
 
 
 def _check_resumable(path: Path, settings: dict) -> None:
@@ -149,6 +156,7 @@ def evaluate_detector_workdir(
     runtime: str = "jax",
     precision: str = "f32",
     export_dir: str | os.PathLike | None = None,
+    int8: Int8Settings | None = None,
 ) -> dict:
     """The model mode as a function (see the module docstring); prints as it goes.
 
@@ -176,11 +184,20 @@ def evaluate_detector_workdir(
     suffix = run_suffix(runtime, precision)
     out = Path(out_dir) if out_dir else workdir / "eval" / f"{split}_{detector.tag}{suffix}"
     result_dir = out / "data"
-    settings = run_settings(detector, split, root, dtype, runtime, precision)
+    if precision == "int8":
+        int8 = int8 or Int8Settings()
+    settings = run_settings(detector, split, root, dtype, runtime, precision, int8)
     compile_s = None
     if onnx:  # load (or export) first: a refused export leaves no run.json behind
         compile_s = use_runtime(
-            evaluator, detector, workdir, runtime, precision, export_dir=export_dir, threads=threads
+            evaluator,
+            detector,
+            workdir,
+            runtime,
+            precision,
+            export_dir=export_dir,
+            threads=threads,
+            int8=int8,
         )
     _check_resumable(out / "run.json", settings)
     ids = evaluator.frame_ids()
@@ -239,6 +256,7 @@ def run_model_mode(args, parser) -> dict:
     runtime, precision = resolve_runtime(args.runtime, args.precision)
     try:
         threads = limit_cpu_threads(args.threads)
+        int8 = int8_settings(args)
     except ValueError as e:
         parser.error(str(e))
     with workdir_lock.hold_if_inside(args.workdir, None):  # results go to W/eval/
@@ -261,4 +279,5 @@ def _evaluate(args, threads: int, runtime: str, precision: str) -> dict:
         runtime=runtime,
         precision=precision,
         export_dir=args.export,
+        int8=int8,
     )

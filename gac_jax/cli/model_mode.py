@@ -17,6 +17,8 @@ import argparse
 import os
 from pathlib import Path
 
+from gac_jax.deploy.int8 import INT8_OPTIONS, add_int8_arguments
+
 XLA_THREAD_NAME = "tf_XLAEigen"
 
 
@@ -49,8 +51,10 @@ def add_model_mode_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--precision",
         choices=PRECISION_CHOICES,
-        help="f32 (default) or bf16 (openvino: native bf16 kernels where the CPU has them)",
+        help="f32 (default), bf16 (openvino: native bf16 kernels where the CPU has them) or "
+        "int8 (openvino: the network quantized by NNCF, calibrated on the training split)",
     )
+    add_int8_arguments(g)
     g.add_argument(
         "--export", metavar="DIR", help="export folder to use (default: W/export/<weights>)"
     )
@@ -59,14 +63,14 @@ def add_model_mode_arguments(parser: argparse.ArgumentParser) -> None:
 
 MODEL_MODE_OPTIONS = (
     "config", "data", "split", "step", "checkpoint", "batch_size", "threads", "overrides",
-    "runtime", "precision", "export",
+    "runtime", "precision", "export", *INT8_OPTIONS,
 )  # fmt: skip
 
 
 RUNTIME_CHOICES = ("jax", "onnxruntime", "openvino")  # gac_jax.deploy.runtimes.RUNTIMES
 
 
-PRECISION_CHOICES = ("f32", "bf16")
+PRECISION_CHOICES = ("f32", "bf16", "int8")  # gac_jax.deploy.runtimes.PRECISIONS
 
 
 def reject_model_mode_arguments(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:

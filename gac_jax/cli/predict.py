@@ -3,7 +3,8 @@
     python -m gac_jax.cli.predict --workdir W IMAGE_OR_DIR [--calib FILE_OR_DIR] [--out DIR]
         [--no-images] [--step N | --checkpoint DIR --config C] [--camera 2|3]
         [--score-threshold S] [--batch-size B] [--threads T]
-        [--runtime jax|onnxruntime|openvino] [--precision f32|bf16] [--export DIR]
+        [--runtime jax|onnxruntime|openvino] [--precision f32|bf16|int8] [--export DIR]
+        [--int8-frames N] [--int8-seed S] [--int8-keep-float REGEX ...]
 
 ``IMAGE_OR_DIR`` is one image (PNG/JPEG) or a folder of them. Each image needs
 its KITTI calibration file (``P2: ...`` line; ``--camera 3`` uses ``P3``):
@@ -142,6 +143,9 @@ class ImageSource:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from gac_jax.cli.model_mode import PRECISION_CHOICES
+    from gac_jax.deploy.int8 import add_int8_arguments
+
     parser = argparse.ArgumentParser(
         prog="python -m gac_jax.cli.predict",
         description="Run a trained GAC detector on KITTI-format images; write KITTI result files "
@@ -165,10 +169,11 @@ def build_parser() -> argparse.ArgumentParser:
         default="jax",
         help="what runs the network (default jax; the others export it to W/export/ if absent)",
     )
-    parser.add_argument("--precision", choices=("f32", "bf16"), default="f32")
+    parser.add_argument("--precision", choices=PRECISION_CHOICES, default="f32")
     parser.add_argument(
         "--export", metavar="DIR", help="export folder for --runtime (default: W/export/<weights>)"
     )
+    add_int8_arguments(parser)
     return parser
 
 
@@ -212,6 +217,7 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
             args.precision,
             export_dir=args.export,
             threads=threads,
+            int8=getattr(args, "int8", None),
         )
     detections, timings = evaluator.predict_split(detector.variables, out / "data", resume=False)
     n = int(timings["num_frames"])
@@ -254,8 +260,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     resolve_runtime(args.runtime, args.precision)
 
+    from gac_jax.deploy.int8 import int8_settings
+
     try:
         threads = limit_cpu_threads(args.threads)
+        args.int8 = int8_settings(args)
     except ValueError as e:
         parser.error(str(e))
     from gac_jax.data.io_errors import error_line, exit_code

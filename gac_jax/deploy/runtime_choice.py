@@ -1,8 +1,9 @@
-"""Which runtime runs the network: ``--runtime jax|onnxruntime|openvino --precision f32|bf16``.
+"""Which runtime runs the network: ``--runtime jax|onnxruntime|openvino --precision f32|bf16|int8``.
 
 :func:`resolve_runtime` checks that a runtime/precision can run here; :func:`use_runtime`
 points a detector's evaluator at the exported network (exported into the run folder on first
-use, refused when stale), :func:`runtime_predictor` does the same for a depth network.
+use, refused when stale; for ``int8`` quantized beside it, :mod:`gac_jax.deploy.int8`),
+:func:`runtime_predictor` does the same for a depth network.
 Decoding, NMS and hill-climbing stay the project's own code for every runtime.
 """
 
@@ -17,6 +18,7 @@ import jax.numpy as jnp
 
 from gac_jax.builders.detect3d import filter_options
 from gac_jax.data.files import KittiFormatError
+from gac_jax.deploy.int8 import Int8Settings
 from gac_jax.evaluation.depth_evaluator import NetworkPredictor
 from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
 from gac_jax.trained.detector import LoadedDetector
@@ -54,23 +56,44 @@ def default_export_dir(workdir: str | os.PathLike, detector: LoadedDetector) -> 
     return Path(workdir) / "export" / detector.tag
 
 
-def ensure_export_in(source, out: Path, workdir: str | os.PathLike | None) -> None:
-    """The export of ``source`` in ``out``, written when absent (holding the lock of
-    ``workdir`` when ``out`` lies inside it: an export is a write into the run folder; using
-    an existing one only reads). Raises KittiFormatError for a stale or corrupted one."""
+def network_file(
+    source, out: Path, precision: str, int8: Int8Settings | None, workdir=None
+) -> Path:
+    """The file the runtime loads: ``out/model.onnx`` of ``source`` (an
+    :class:`~gac_jax.deploy.export.sources.ExportSource`; exported when the folder is empty,
+    refused when stale), or for ``int8`` the quantized ``out/model_int8.xml`` made from it.
+
+    Writing into ``out`` (a first export, an int8 model that may be rebuilt) holds the lock of
+    ``workdir`` when ``out`` lies inside it; using an existing float export only reads.
+
+    Raises:
+      KittiFormatError: a stale or corrupted export, a failed export or quantization, a
+        ``--int8-keep-float`` pattern that matches no layer (naming the folder's file).
+    """
     from gac_jax.deploy.export.artifact import EXPORT_FILE, MODEL_FILE
     from gac_jax.deploy.export.networks import ExportError
     from gac_jax.deploy.export.sources import ensure_export
 
     absent = not (out / EXPORT_FILE).exists() and not (out / MODEL_FILE).exists()
-    lock = workdir_lock.hold_if_inside(workdir, out) if absent else contextlib.nullcontext()
-    try:
-        with lock:
+    writes = absent or precision == "int8"
+    lock = workdir_lock.hold_if_inside(workdir, out) if writes else contextlib.nullcontext()
+    with lock:
+        try:
             _, exported = ensure_export(source, out)
-    except ExportError as e:
-        raise KittiFormatError(out, str(e)) from None
-    if exported:
-        print(f"exported the network to {out}", flush=True)
+        except ExportError as e:
+            raise KittiFormatError(out, str(e)) from None
+        if exported:
+            print(f"exported the network to {out}", flush=True)
+        if precision != "int8":
+            return out / MODEL_FILE
+        from gac_jax.deploy.int8 import ensure_int8
+
+        try:
+            return ensure_int8(out, source.task, source.config, int8 or Int8Settings())
+        except ValueError as e:
+            if isinstance(e, KittiFormatError):
+                raise
+            raise KittiFormatError(out / MODEL_FILE, str(e)) from None
 
 
 def use_runtime(
@@ -82,12 +105,15 @@ def use_runtime(
     *,
     export_dir: str | os.PathLike | None = None,
     threads: int | None = None,
+    int8: Int8Settings | None = None,
 ) -> float:
     """Points ``evaluator`` at the exported network in ``runtime`` (the jitted decoding,
     top-k and host post-processing stay as they are); returns the load + warm-up seconds.
 
     The export in ``export_dir`` (default :func:`default_export_dir`) is written when absent
-    and refused when stale or corrupted (:func:`gac_jax.deploy.export.sources.ensure_export`).
+    and refused when stale or corrupted (:func:`gac_jax.deploy.export.sources.ensure_export`);
+    for ``int8`` the quantized network beside it is built when missing or stale
+    (:func:`gac_jax.deploy.int8.ensure_int8` with ``int8``, default settings if None).
     """
     import time
 
@@ -107,10 +133,9 @@ def use_runtime(
         else detector.weights.removeprefix("converted weights "),
         workdir=workdir,
     )
-    ensure_export_in(source, out, workdir)
     size = (config.data.height, config.data.width)
     network = OnnxNetwork(
-        out / "model.onnx",
+        network_file(source, out, precision, int8, workdir),
         runtime,
         precision,
         outputs=DETECTOR_OUTPUTS,
@@ -140,10 +165,12 @@ def runtime_predictor(
     runtime: str,
     precision: str,
     export_dir: str | Path | None = None,
+    int8: Int8Settings | None = None,
 ):
     """The depth predictor of a runtime: the jitted network (``jax``; ``bf16`` = bfloat16
     compute dtype) or the exported one (written to ``export_dir``, default
-    ``W/export/step<N>``, when absent; refused when stale or corrupted)."""
+    ``W/export/step<N>``, when absent; refused when stale or corrupted; ``int8``: how
+    :mod:`gac_jax.deploy.int8` calibrates the quantized network, default settings if None)."""
     if runtime == "jax":
         if precision == "bf16":
             model = model.clone(dtype=jnp.bfloat16)
@@ -152,9 +179,9 @@ def runtime_predictor(
     from gac_jax.deploy.runtimes import DEPTH_OUTPUTS, OnnxNetwork, RuntimeDepthPredictor
 
     out = Path(export_dir) if export_dir else Path(workdir) / "export" / f"step{step}"
-    ensure_export_in(depth_source(config, model, variables, step=step), out, workdir)
+    source = depth_source(config, model, variables, step=step)
     network = OnnxNetwork(
-        out / "model.onnx",
+        network_file(source, out, precision, int8, workdir),
         runtime,
         precision,
         outputs=DEPTH_OUTPUTS,

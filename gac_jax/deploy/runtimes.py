@@ -1,6 +1,6 @@
 """Deployment runtimes: the exported ONNX networks under ONNX Runtime or OpenVINO (CPU).
 
-``--runtime jax|onnxruntime|openvino [--precision f32|bf16]`` of ``evaluate.py`` and
+``--runtime jax|onnxruntime|openvino [--precision f32|bf16|int8]`` of ``evaluate.py`` and
 ``python -m gac_jax.cli.predict`` select how the *network* runs; decoding, the anchor filter and
 top-k (:func:`gac_jax.detection.inference.select_candidates`, jitted), NMS and hill-climbing
 (:func:`gac_jax.detection.inference.postprocess`) and the depth post-processing
@@ -14,7 +14,10 @@ Zen 4 EPYC: ``vdpbf16ps`` dot products) or AMX-BF16 (Intel Sapphire Rapids and l
 matrix units, the big speed-up); elsewhere it is refused in one line. OpenVINO's own default
 on such CPUs is bf16, so ``f32`` is always requested explicitly. ONNX Runtime's CPU provider
 has no bf16 convolutions (refused); JAX's ``bf16`` is the model's compute dtype, which XLA:CPU
-emulates in float32 (rounded, not faster: a one-line note says so).
+emulates in float32 (rounded, not faster: a one-line note says so). ``int8`` is OpenVINO only:
+the NNCF-quantized IR of :mod:`gac_jax.deploy.int8` (its remaining float ops in float32),
+refused where the CPU plugin lists no ``INT8``, with a one-line note on a CPU without int8
+dot products (AVX512_VNNI, AVX_VNNI, AMX-INT8).
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from gac_jax.data.files import KittiFormatError
 from gac_jax.geometry import DEFAULT_CAMERA_HEIGHT, level_plane
 
 RUNTIMES = ("jax", "onnxruntime", "openvino")
-PRECISIONS = ("f32", "bf16")
+PRECISIONS = ("f32", "bf16", "int8")
 DETECTOR_OUTPUTS = ("cls_logits", "sign_logits", "reg")
 DEPTH_OUTPUTS = ("log_depth",)
 INPUTS = ("images", "P2", "plane")
@@ -61,6 +64,9 @@ def cpu_flags() -> dict:
         "avx512_bf16": "avx512_bf16" in flags,
         "amx_bf16": "amx_bf16" in flags,
         "amx_tile": "amx_tile" in flags,
+        # int8 dot products: AVX512_VNNI (Cascade Lake, Zen 4), AVX_VNNI (Alder Lake), AMX-INT8
+        "int8_dot": bool(flags & {"avx512_vnni", "avx_vnni", "amx_int8"}),
+        "amx_int8": "amx_int8" in flags,
     }
 
 
@@ -89,6 +95,8 @@ def check_runtime(runtime: str, precision: str) -> str | None:
                 )
     if precision == "f32":
         return None
+    if precision == "int8":
+        return _check_int8(runtime)
     cpu = cpu_flags()["cpu"]
     if runtime == "onnxruntime":
         raise RuntimeUnavailableError(
@@ -108,6 +116,31 @@ def check_runtime(runtime: str, precision: str) -> str | None:
     )
 
 
+def _check_int8(runtime: str) -> str | None:
+    """int8 is OpenVINO's (an NNCF-quantized IR); a CPU without int8 dot products gets a note."""
+    if runtime != "openvino":
+        raise RuntimeUnavailableError(
+            f"--precision int8 runs the NNCF-quantized network in OpenVINO only; use --runtime "
+            f"openvino --precision int8 (--runtime {runtime}: f32"
+            + (" or bf16)" if runtime == "jax" else ")")
+        )
+    if importlib.util.find_spec("nncf") is None:
+        raise RuntimeUnavailableError(f"--precision int8 needs the nncf package: {EXTRA_HINT}")
+    flags = cpu_flags()
+    if "INT8" not in openvino_capabilities():
+        raise RuntimeUnavailableError(
+            f"--precision int8: OpenVINO's CPU plugin lists no INT8 capability on this CPU "
+            f"({flags['cpu']}); use --precision f32"
+        )
+    if not flags["int8_dot"]:
+        return (
+            f"note: --precision int8: this CPU ({flags['cpu']}) has no int8 dot-product "
+            "instructions (AVX512_VNNI, AVX_VNNI or AMX-INT8); OpenVINO emulates them with "
+            "wider integer arithmetic, so int8 may be no faster than --precision f32"
+        )
+    return None
+
+
 def _first_line(e: BaseException) -> str:
     text = str(e).strip().splitlines()
     return text[0] if text else type(e).__name__
@@ -117,8 +150,9 @@ class OnnxNetwork:
     """An exported network (``model.onnx``) in ONNX Runtime or OpenVINO on the CPU.
 
     Args:
-      path: the ``model.onnx``.
-      runtime: ``'onnxruntime'`` or ``'openvino'``; precision: ``'f32'`` or ``'bf16'``.
+      path: the ``model.onnx`` (for OpenVINO ``int8``: the quantized ``model_int8.xml``).
+      runtime: ``'onnxruntime'`` or ``'openvino'``; precision: ``'f32'``, ``'bf16'`` or
+        ``'int8'`` (OpenVINO; :mod:`gac_jax.deploy.int8`).
       outputs: output names the caller needs (checked at load).
       image_size: (H, W) the caller feeds (checked against the model's input).
       threads: CPU threads (default: every usable core).
@@ -223,6 +257,7 @@ class OnnxNetwork:
                 }
             )
         config = {
+            # int8: the quantized ops run in int8, the rest in float32 (not the CPU's bf16 default)
             "INFERENCE_PRECISION_HINT": "bf16" if precision == "bf16" else "f32",
             "PERFORMANCE_HINT": "LATENCY",
             "INFERENCE_NUM_THREADS": str(threads),

@@ -1,13 +1,16 @@
 """``python -m gac_jax.deploy.export``: a trained network -> ``DIR/model.onnx`` + ``export.json``.
 
     python -m gac_jax.deploy.export --task detect3d|depth (--workdir W [--step N] |
-        --checkpoint C --config F) --out DIR [--opset K] [key.sub=value ...]
+        --checkpoint C --config F) --out DIR [--opset K] [--precision int8 [--int8-frames N]
+        [--int8-seed S] [--int8-keep-float REGEX ...]] [key.sub=value ...]
 
 The graph is emitted from the Flax variables and the config (:mod:`gac_jax.deploy.export.networks`):
 NCHW, BatchNorm folded, inputs ``images`` (B,H,W,3) float32, ``P2`` (B,3,4) and ``plane`` (B,4)
 (the frame's ground plane) with a dynamic batch. ``--checkpoint`` (converted weights,
-``python -m gac_jax.weights.convert``) is for the detector. An ``--out`` inside ``--workdir``
-is a write into that run folder: the command holds its lock
+``python -m gac_jax.weights.convert``) is for the detector. ``--precision int8`` also writes
+``DIR/model_int8.xml`` (+ ``.bin``), the network quantized by NNCF on frames of the run's
+training split (:mod:`gac_jax.deploy.int8`), for ``--runtime openvino --precision int8``. An
+``--out`` inside ``--workdir`` is a write into that run folder: the command holds its lock
 (:mod:`gac_jax.training.workdir_lock`) and refuses a folder that another process writes to.
 Errors end with ``error: <file>: <problem>`` and exit code 2 (1: a full disk).
 """
@@ -19,6 +22,7 @@ import sys
 from collections.abc import Sequence
 
 from gac_jax.deploy.export.artifact import DEFAULT_OPSET, MODEL_FILE
+from gac_jax.deploy.int8 import add_int8_arguments, ensure_int8, int8_settings
 
 EXIT_INVALID_INPUT = 2
 MIN_OPSET = 13  # Resize with align_corners and sizes, Clip/Pad/Slice with tensor inputs
@@ -36,6 +40,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--config", help="config file[:arg] (needed with --checkpoint)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
     parser.add_argument("--opset", type=int, default=DEFAULT_OPSET, help="ONNX opset")
+    parser.add_argument(
+        "--precision",
+        choices=("f32", "int8"),
+        default="f32",
+        help="f32: model.onnx only (default); int8: also the NNCF-quantized model_int8.xml",
+    )
+    add_int8_arguments(parser)
     parser.add_argument("overrides", nargs="*", help="config overrides key.sub=value")
     return parser
 
@@ -51,6 +62,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--step selects a checkpoint of the workdir; it cannot go with --checkpoint")
     if args.opset < MIN_OPSET:
         parser.error(f"--opset must be >= {MIN_OPSET}")
+    try:
+        int8 = int8_settings(args)
+    except ValueError as e:
+        parser.error(str(e))
+    if int8 is not None:
+        from gac_jax.deploy.runtimes import RuntimeUnavailableError, check_runtime
+
+        try:
+            note = check_runtime("openvino", "int8")
+        except RuntimeUnavailableError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return EXIT_INVALID_INPUT
+        if note:
+            print(note)
     from gac_jax.data.files import KittiFormatError
     from gac_jax.data.io_errors import error_line, exit_code
     from gac_jax.deploy.export.networks import ExportError
@@ -68,6 +93,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 overrides=args.overrides,
             )
             meta = export_source(source, args.out, args.opset)
+            if int8 is not None:
+                ensure_int8(args.out, source.task, source.config, int8)
     except ExportError as e:
         print(f"error: {args.workdir or args.checkpoint}: {e}", file=sys.stderr)
         return EXIT_INVALID_INPUT
@@ -77,6 +104,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as e:
         print(f"error: {error_line(e, args.out)}", file=sys.stderr)
         return exit_code(e)
+    except ValueError as e:  # an --int8-keep-float pattern that matches no layer
+        print(f"error: {args.out}/{MODEL_FILE}: {e}", file=sys.stderr)
+        return EXIT_INVALID_INPUT
     h, w = source.image_size
     print(
         f"{args.task} {source.weights} -> {args.out}/{MODEL_FILE} ({meta['size_bytes'] / 1e6:.1f} "

@@ -78,11 +78,24 @@ class GraphBuilder:
         self.inputs: list[onnx.ValueInfoProto] = []
         self.outputs: list[onnx.ValueInfoProto] = []
         self._count: dict[str, int] = {}
+        self._named: set[str] = set()
 
     def fresh(self, prefix: str) -> str:
         n = self._count.get(prefix, 0)
         self._count[prefix] = n + 1
         return f"{self.prefix}{prefix}_{n}"
+
+    def named(self, name: str | None) -> str | None:
+        """``name`` (a layer's Flax path, e.g. ``backbone/layer1_0/conv1``) made unique, or
+        None. Convolutions carry these names so that a quantizer's ignored scope (NNCF
+        patterns, :mod:`gac_jax.deploy.int8`) can select layers by the model's own names."""
+        if name is None:
+            return None
+        name = f"{self.prefix}{name}"
+        if name in self._named:
+            return self.fresh(name)
+        self._named.add(name)
+        return name
 
     # ------------------------------------------------------------------ graph interface
     def add_input(self, name: str, shape: list) -> str:
@@ -131,10 +144,11 @@ class GraphBuilder:
         bias_add: float = 0.0,
         winograd_size: tuple[int, int] | None = None,
     ) -> str:
-        """Flax conv params ``{'kernel', 'bias'?}`` (+ folded BN, output ``scale``, constant
-        ``bias_add``) as one ONNX Conv (+ Relu). ``padding`` defaults to ``(k - 1) // 2``.
-        ``winograd_size``: the (H, W) of ``x``, marking a 5x5 stride-1 conv as a candidate for
-        :meth:`conv5x5_winograd` at load time (float32 runtimes only)."""
+        """Flax conv params ``{'kernel', 'bias'?, 'name'?}`` (+ folded BN, output ``scale``,
+        constant ``bias_add``) as one ONNX Conv (+ Relu) named ``name`` (:meth:`named`).
+        ``padding`` defaults to ``(k - 1) // 2``. ``winograd_size``: the (H, W) of ``x``,
+        marking a 5x5 stride-1 conv as a candidate for :meth:`conv5x5_winograd` at load time
+        (float32 runtimes only)."""
         w, b = fold_batch_norm(conv["kernel"], conv.get("bias"), bn)
         if scale is not None:
             w, b = w * np.float32(scale), b * np.float32(scale)
@@ -148,6 +162,7 @@ class GraphBuilder:
             kernel_shape=[kh, kw],
             strides=[stride, stride],
             pads=[ph, pw, ph, pw],
+            name=self.named(conv.get("name")),
         )
         if winograd_size is not None and (kh, kw, ph, pw, stride) == (5, 5, 2, 2, 1):
             self.winograd_convs[y] = [int(w.shape[1]), *map(int, winograd_size)]

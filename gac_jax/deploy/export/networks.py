@@ -55,7 +55,10 @@ class _Weights:
         return tree
 
     def conv(self, *path: str) -> dict:
-        return {k: np.asarray(v) for k, v in self._walk(self.params, path).items()}
+        """``{'kernel', 'bias'?}`` of the conv at ``path`` and ``'name'``: the path joined
+        with ``/`` (the ONNX node's name)."""
+        arrays = {k: np.asarray(v) for k, v in self._walk(self.params, path).items()}
+        return {**arrays, "name": "/".join(path)}
 
     def bn(self, *path: str) -> dict:
         p, s = self._walk(self.params, path), self._walk(self.stats, path)
@@ -367,7 +370,10 @@ def _resized_single_channel_conv(
     if kernel.shape[:2] != (3, 3) or kernel.shape[3] != 1:
         raise ExportError(f"expected a 3x3 conv with one output channel, got {kernel.shape}")
     taps = kernel[..., 0].reshape(9, -1).T[None, None]  # (1, 1, C, 9): tap k = 3 * dy + dx
-    t = _resize(g, g.conv(x, {"kernel": taps}), size)  # (B, 9, H, W)
+    taps_conv = (
+        {"kernel": taps, "name": f"{conv['name']}/taps"} if "name" in conv else {"kernel": taps}
+    )
+    t = _resize(g, g.conv(x, taps_conv), size)  # (B, 9, H, W)
     H, W = size
     t = g.op("Pad", [t, g.const([0, 0, 1, 1, 0, 0, 1, 1], "pads", np.int64)], mode="constant")
     axes = g.const([1, 2, 3], "ax", np.int64)

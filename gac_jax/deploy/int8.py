@@ -1,0 +1,325 @@
+"""int8 networks: NNCF post-training quantization of an export, calibrated on the run's data.
+
+``--runtime openvino --precision int8`` runs ``DIR/model_int8.xml`` (+ ``.bin``), an OpenVINO
+IR that NNCF (``nncf.quantize``, preset ``mixed``: symmetric int8 weights, asymmetric int8
+activations; fast bias correction) made from ``DIR/model.onnx``. Calibration frames are
+``frames`` images of the run's *training* split drawn with ``seed``, read and transformed by
+the project's own eval transform (:func:`gac_jax.builders.detect3d.eval_transform`,
+:func:`gac_jax.builders.depth.eval_transform`), i.e. exactly what the network sees at test
+time, with their ``P2``.
+
+``export.json`` gains an ``int8`` block: the sha256 of ``model.onnx`` it was made from, the
+calibration (split, data root, frame ids, seed, transform), the preset, the layers kept in
+float32, the sha256 of both IR files and the NNCF / OpenVINO versions. :func:`ensure_int8`
+reuses a matching int8 model and (re)builds a missing, stale (other ``model.onnx`` or other
+settings) or damaged one, saying why in one line; both IR files are written to a temporary
+folder and renamed into place, and ``export.json`` last, so an interrupted build is only
+ever seen as "missing" or "damaged" and built again.
+
+Mixed precision: ``keep_float`` are regular expressions (NNCF ``IgnoredScope(patterns=...)``,
+matched with ``re.match``, i.e. at the start, against OpenVINO node names). The exporter names
+every convolution by its Flax path (detector: ``backbone/layer1_0/conv1``, ``head/cls_out``,
+``head/gac/extract``; depth U-Net: ``backbone/...``, ``up0/gac/...``, ``up2/conv1``,
+``out_scale_1/taps``), so ``head/`` keeps the whole detection head in float32,
+``head/(cls|reg)_out`` its two output convs. A pattern that matches no node is refused (the
+message lists the layer prefixes), so a scope cannot silently stop applying when the model
+changes. ``benchmarks/bench_int8_sensitivity.py`` measures which blocks cost the AP.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import os
+import re
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gac_jax.data.files import KittiFormatError, atomic_write
+from gac_jax.deploy.export import artifact
+
+INT8_MODEL = "model_int8.xml"  # + model_int8.bin (weights)
+INT8_WEIGHTS = "model_int8.bin"
+PRESET = "mixed"
+# calibration time is mostly NNCF's bias correction, roughly linear in the frames: 13 frames
+# took 104 s for the paper detector (R101, 288x1280) on a loaded 2-core EPYC, 2 s for the
+# default one; 16 is about a minute to a minute and a half for the paper detector
+DEFAULT_FRAMES = 16
+DEFAULT_SEED = 0
+# what a stored int8 model must agree on with the requested one (else it is rebuilt)
+COMPARED = ("source_sha256", "calibration", "preset", "keep_float")
+
+
+@dataclasses.dataclass(frozen=True)
+class Int8Settings:
+    """How the int8 model is calibrated: ``frames`` training images drawn with ``seed``;
+    ``keep_float``: node-name patterns kept in float32 (see the module docstring)."""
+
+    frames: int = DEFAULT_FRAMES
+    seed: int = DEFAULT_SEED
+    keep_float: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        if self.frames < 1:
+            raise ValueError(f"--int8-frames must be >= 1, got {self.frames}")
+        for pattern in self.keep_float:
+            try:
+                re.compile(pattern)
+            except re.error as e:
+                raise ValueError(
+                    f"--int8-keep-float {pattern!r}: not a regular expression ({e})"
+                ) from None
+
+
+INT8_OPTIONS = ("int8_frames", "int8_seed", "int8_keep_float")
+
+
+def add_int8_arguments(parser) -> None:
+    """``--int8-frames``, ``--int8-seed`` and ``--int8-keep-float`` (argparse parser or group;
+    all default to None, i.e. "not given": :func:`int8_settings` fills in the defaults)."""
+    parser.add_argument(
+        "--int8-frames",
+        type=int,
+        metavar="N",
+        help=f"--precision int8: calibration images from the training split (default "
+        f"{DEFAULT_FRAMES}: about a minute for the paper detector on 2 cores)",
+    )
+    parser.add_argument(
+        "--int8-seed", type=int, help=f"which calibration images (default seed {DEFAULT_SEED})"
+    )
+    parser.add_argument(
+        "--int8-keep-float",
+        action="append",
+        metavar="REGEX",
+        help="--precision int8: keep the layers whose names match in float32 (repeatable; "
+        "names are Flax paths, e.g. 'head/.*' or 'head/(cls|reg)_out.*')",
+    )
+
+
+def int8_settings(args) -> Int8Settings | None:
+    """The :class:`Int8Settings` of parsed arguments with ``--precision int8`` (defaults for
+    options not given), None for another precision.
+
+    Raises:
+      ValueError: ``--int8-*`` options without ``--precision int8``, or invalid values.
+    """
+    given = [n for n in INT8_OPTIONS if getattr(args, n, None) is not None]
+    if getattr(args, "precision", None) != "int8":
+        if given:
+            flags = ", ".join("--" + n.replace("_", "-") for n in given)
+            verb = "apply" if len(given) > 1 else "applies"
+            raise ValueError(f"{flags} only {verb} with --precision int8")
+        return None
+    frames, seed = getattr(args, "int8_frames", None), getattr(args, "int8_seed", None)
+    return Int8Settings(
+        frames=DEFAULT_FRAMES if frames is None else frames,
+        seed=DEFAULT_SEED if seed is None else seed,
+        keep_float=tuple(getattr(args, "int8_keep_float", None) or ()),
+    )
+
+
+def _versions() -> dict[str, str]:
+    return artifact.library_versions(("nncf", "openvino"))
+
+
+def _sha256_file(path: Path) -> str:
+    return artifact.sha256_bytes(path.read_bytes())
+
+
+# ----------------------------------------------------------------------------- calibration
+
+
+def calibration_source(task: str, config):
+    """``(source, transform, root)``: the run's training split and its eval transform."""
+    if task == "detect3d":
+        from gac_jax.builders.datasets import prepare_dataset
+        from gac_jax.builders.detect3d import eval_transform
+        from gac_jax.data.sources import open_object_source
+
+        root = prepare_dataset(config.data)
+        source = open_object_source(root, config.data.train_split, use_right_image=False)
+        return source, eval_transform(config), root
+    from gac_jax.builders import depth
+
+    root = depth.depth_root(config.data)
+    return depth.train_source(config, root), depth.eval_transform(config), root
+
+
+def calibration_frames(task: str, config, frames: int, seed: int) -> tuple[list[dict], dict]:
+    """``frames`` transformed training images (fewer if the split is smaller) as network
+    feeds ``{'images': (1,H,W,3) float32, 'P2': (1,3,4) float32}``, and their description."""
+    source, transform, root = calibration_source(task, config)
+    if len(source) == 0:
+        raise KittiFormatError(root, f"no frames in the training split {config.data.train_split}")
+    rng = np.random.default_rng(seed)
+    picked = np.sort(rng.choice(len(source), min(frames, len(source)), replace=False))
+    feeds, ids = [], []
+    for i in picked:
+        sample = transform(source[int(i)])
+        feeds.append(
+            {
+                "images": np.asarray(sample["image"], np.float32)[None],
+                "P2": np.asarray(sample["P2"], np.float32)[None],
+            }
+        )
+        ids.append(f"{sample.get('frame_id', i)}:{sample.get('camera', 2)}")
+    described = {
+        "split": config.data.train_split,
+        "data_root": str(Path(root).resolve()),
+        "frames": len(feeds),
+        "frames_requested": frames,
+        "seed": seed,
+        "frame_ids": ids,
+        "transform": f"gac_jax.builders.{'detect3d' if task == 'detect3d' else 'depth'}"
+        ".eval_transform",
+    }
+    return feeds, described
+
+
+# ----------------------------------------------------------------------------- quantization
+
+
+def check_keep_float(model, keep_float: tuple[str, ...]) -> None:
+    """Refuses a ``keep_float`` pattern that matches no node of the OpenVINO ``model``.
+
+    Raises:
+      ValueError: naming the pattern and the convolutions' top-level layer names.
+    """
+    ops = list(model.get_ordered_ops())
+    names = [op.get_friendly_name() for op in ops]
+    for pattern in keep_float:
+        if not any(re.match(pattern, n) for n in names):  # as NNCF matches them
+            convs = [
+                n for n, op in zip(names, ops, strict=True) if op.get_type_name() == "Convolution"
+            ]
+            layers = sorted({n.split("/")[0] for n in convs if "/" in n})
+            raise ValueError(
+                f"--int8-keep-float {pattern!r} matches no layer of the network (names are Flax "
+                f"paths under {', '.join(layers)}, e.g. '{layers[-1] if layers else 'head'}/.*')"
+            )
+
+
+def quantize_model(onnx_path: Path, feeds: list[dict], keep_float: tuple[str, ...] = ()):
+    """The NNCF-quantized OpenVINO model of ``onnx_path`` (calibrated on ``feeds``)."""
+    import logging
+
+    import nncf
+    import openvino as ov
+
+    nncf.set_log_level(logging.WARNING)  # not one INFO line per layer kept in float32
+    model = ov.Core().read_model(str(onnx_path))
+    check_keep_float(model, keep_float)
+    scope = nncf.IgnoredScope(patterns=list(keep_float), validate=False) if keep_float else None
+    return nncf.quantize(
+        model,
+        nncf.Dataset(feeds),
+        preset=nncf.QuantizationPreset.MIXED,
+        subset_size=len(feeds),
+        ignored_scope=scope,
+    )
+
+
+def _save_atomic(model, out: Path) -> dict[str, str]:
+    """Saves ``model`` as ``out/model_int8.{xml,bin}`` via a temporary folder (weights first,
+    the xml that references them last); returns the sha256 of both files."""
+    import openvino as ov
+
+    tmp = Path(tempfile.mkdtemp(prefix=".int8.", dir=out))
+    try:
+        ov.save_model(model, str(tmp / INT8_MODEL), compress_to_fp16=False)
+        sums = {name: _sha256_file(tmp / name) for name in (INT8_MODEL, INT8_WEIGHTS)}
+        os.replace(tmp / INT8_WEIGHTS, out / INT8_WEIGHTS)
+        os.replace(tmp / INT8_MODEL, out / INT8_MODEL)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return sums
+
+
+def _wanted(meta: dict, calibration: dict, settings: Int8Settings) -> dict:
+    return {
+        "source_sha256": meta["sha256"],
+        "calibration": calibration,
+        "preset": PRESET,
+        "keep_float": list(settings.keep_float),
+    }
+
+
+def _why_rebuild(out: Path, stored: dict | None, wanted: dict) -> str | None:
+    """Why the stored int8 model cannot be used (None: it can)."""
+    if stored is None:
+        return "no int8 model yet"
+    diffs = [k for k in COMPARED if stored.get(k) != wanted[k]]
+    if diffs:
+        return f"int8 model made with other {', '.join(diffs).replace('_', ' ')}"
+    for name, expected in stored.get("sha256", {}).items():
+        path = out / name
+        if not path.is_file():
+            return f"{name} missing"
+        if _sha256_file(path) != expected:
+            return f"{name} damaged or replaced (sha256 differs from {artifact.EXPORT_FILE})"
+    return None
+
+
+def ensure_int8(out_dir: str | os.PathLike, task: str, config, settings: Int8Settings) -> Path:
+    """``out_dir/model_int8.xml`` for these settings, built (printing why) when it is
+    missing, stale or damaged; ``out_dir`` must hold a checked float export
+    (:func:`gac_jax.deploy.export.sources.ensure_export`).
+
+    Raises:
+      KittiFormatError: the calibration data cannot be read, or quantization fails (naming
+        the file); ValueError: a ``keep_float`` pattern matches no layer.
+    """
+    out = Path(out_dir)
+    meta = artifact.read_export(out)
+    calibration = _calibration_key(task, config, settings)
+    wanted = _wanted(meta, calibration, settings)
+    why = _why_rebuild(out, meta.get("int8"), wanted)
+    if why is None:
+        return out / INT8_MODEL
+    if settings.keep_float:  # refuse a bad pattern before announcing the build
+        import openvino as ov
+
+        check_keep_float(ov.Core().read_model(str(out / artifact.MODEL_FILE)), settings.keep_float)
+    print(f"{out / INT8_MODEL}: {why}; quantizing (NNCF, {settings.frames} calibration frames)")
+    t0 = time.perf_counter()
+    feeds, described = calibration_frames(task, config, settings.frames, settings.seed)
+    try:
+        model = quantize_model(out / artifact.MODEL_FILE, feeds, settings.keep_float)
+    except ValueError:  # a keep_float pattern that matches nothing: the caller's message
+        raise
+    except Exception as e:  # NNCF / OpenVINO raise their own types
+        text = str(e).strip().splitlines()
+        raise KittiFormatError(
+            out / artifact.MODEL_FILE, f"int8 quantization failed: {text[0] if text else e}"
+        ) from None
+    sums = _save_atomic(model, out)
+    seconds = time.perf_counter() - t0
+    meta["int8"] = {
+        **wanted,
+        "calibration_frames": described,
+        "sha256": sums,
+        "libraries": _versions(),
+        "seconds": round(seconds, 1),
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+    with atomic_write(out / artifact.EXPORT_FILE) as f:
+        json.dump(meta, f, indent=2)
+        f.write("\n")
+    print(f"int8 model written to {out / INT8_MODEL} ({seconds:.0f} s)", flush=True)
+    return out / INT8_MODEL
+
+
+def _calibration_key(task: str, config, settings: Int8Settings) -> dict:
+    """What selects the calibration frames (compared on use): split, data root, count, seed."""
+    _, _, root = calibration_source(task, config)
+    return {
+        "split": config.data.train_split,
+        "data_root": str(Path(root).resolve()),
+        "frames": settings.frames,
+        "seed": settings.seed,
+    }
