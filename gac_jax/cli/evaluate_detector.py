@@ -260,11 +260,11 @@ def run_model_mode(args, parser) -> dict:
     except ValueError as e:
         parser.error(str(e))
     with workdir_lock.hold_if_inside(args.workdir, None):  # results go to W/eval/
-        summary = _evaluate(args, threads, runtime, precision)
+        summary = _evaluate(args, threads, runtime, precision, int8)
     return summary["metrics"]
 
 
-def _evaluate(args, threads: int, runtime: str, precision: str) -> dict:
+def _evaluate(args, threads: int, runtime: str, precision: str, int8) -> dict:
     return evaluate_detector_workdir(
         args.workdir,
         config_spec=args.config,
