@@ -262,12 +262,13 @@ class DetectionEvaluator:
         with _HostWork(self.io_threads if self.overlap_io else 0) as host:
             ahead = max(host.readers, 1)  # batches read ahead of the one in the network
             loads = [host.read(self._load_batch, todo, ep) for ep, todo in work[:ahead]]
-            for k, (_, todo) in enumerate(work):
+            for j, (_, todo) in enumerate(work):
                 t_start = time.perf_counter()
-                batch = loads[k].result()
-                loads[k] = None  # the batch is not kept past its step
-                if k + ahead < len(work):
-                    loads.append(host.read(self._load_batch, *work[k + ahead][::-1]))
+                batch = loads[j].result()
+                loads[j] = None  # the batch is not kept past its step
+                if j + ahead < len(work):
+                    next_epoch, next_todo = work[j + ahead]
+                    loads.append(host.read(self._load_batch, next_todo, next_epoch))
                 n = len(todo)
                 t0 = time.perf_counter()
                 candidates = self.predict(variables, batch["image"], batch["P2"])
