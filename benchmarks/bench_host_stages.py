@@ -34,9 +34,28 @@ files. Reported: per-stage medians over frames and rounds, the machine and its l
     python benchmarks/bench_host_stages.py [--configs paper,default] [--rounds 5]
         [--baseline REV] [--top-k 100] [--loop-network-ms 4] [--json OUT]
 
-Measured (2-core AMD EPYC 9R14 Zen 4, no AMX, shared with other jobs: load average 4-8;
-``--baseline 340f05a``, 13 frames, 5 rounds, medians in ms per frame; see docs/inference.md):
-filled in from the run quoted in docs/inference.md.
+Measured on the 2-core AMD EPYC (Zen 4: AVX512_BF16, no AMX) of this project, shared with
+other jobs (load average 7-10 on its 2 cores, so every figure is inflated; the two trees took
+turns), ``--baseline 340f05a`` (the code before these changes), 13 frames x 5 rounds, top_k
+100, median ms per frame, old -> new:
+
+======================  ==============  ==============
+stage                   paper           default
+======================  ==============  ==============
+read (PNG decode)       26.7 -> 20.6    21.3 -> 20.4
+transform               21.3 -> 9.9     6.8 -> 1.8
+decode (jitted)         4.3 -> 5.2      2.7 -> 3.7
+NMS                     0.54 -> 0.52    0.36 -> 0.37
+hill climbing           13.5 -> 4.1     11.1 -> 1.9
+post other              1.1 -> 1.1      0.9 -> 0.8
+write                   2.1 -> 2.0      1.7 -> 1.6
+host total (serial)     75.4 -> 47.9    49.0 -> 35.9
+loop non-network        74.8 -> 41.9    43.9 -> 27.0
+======================  ==============  ==============
+
+(71 and 44 detections per frame; result files identical across trees and rounds.) Read and
+decode did not change (their differences are the load); in the loop, reading runs beside
+the rest on the second core, which a 2-core machine with other jobs on it barely has.
 """
 
 from __future__ import annotations
