@@ -289,3 +289,44 @@ def test_evaluator_errors_surface_as_in_the_serial_loop(
     evaluator.overlap_io = overlap
     with pytest.raises(OSError):
         evaluator.predict_split(tiny_detector.variables, blocked / "data")
+
+
+def reference_format_label(objects, with_score):
+    """The result-file text as it was formatted, field by field."""
+    lines = []
+    for i in range(len(objects)):
+        x1, y1, x2, y2 = objects.bbox[i]
+        h, w, l = objects.dimensions[i]
+        x, y, z = objects.location[i]
+        line = (
+            f"{objects.type[i]} {objects.truncated[i]:.2f} {int(objects.occluded[i])} "
+            f"{objects.alpha[i]:.6f} {x1:.2f} {y1:.2f} {x2:.2f} {y2:.2f} "
+            f"{h:.6f} {w:.6f} {l:.6f} {x:.6f} {y:.6f} {z:.6f} {objects.rotation_y[i]:.6f}"
+        )
+        if with_score:
+            line += f" {objects.score[i]:.6f}"
+        lines.append(line)
+    return "".join(line + "\n" for line in lines)
+
+
+@pytest.mark.parametrize("with_score", [True, False])
+def test_result_text_equals_the_reference(with_score):
+    from gac_jax.data.kitti import KittiObjects
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 500):
+        special = rng.choice([1.0, 1e-9, 0.0, -0.0, -1e-9, np.nan, np.inf, -np.inf], (n, 1))
+        objects = KittiObjects.from_arrays(
+            type=rng.choice(["Car", "Pedestrian", "DontCare"], n),
+            truncated=rng.uniform(-1, 1, n),
+            occluded=rng.integers(-1, 4, n),
+            alpha=rng.normal(0, 3, n) * special[:, 0],
+            bbox=rng.normal(0, 500, (n, 4)) * special,
+            dimensions=rng.uniform(0, 5, (n, 3)),
+            location=rng.normal(0, 30, (n, 3)) * special,
+            rotation_y=rng.normal(0, 2, n),
+            score=rng.random(n) * special[:, 0],
+        )
+        text = format_label(objects, with_score)
+        assert text == reference_format_label(objects, with_score)
+        assert text.count("\n") == n
