@@ -35,27 +35,28 @@ files. Reported: per-stage medians over frames and rounds, the machine and its l
         [--baseline REV] [--top-k 100] [--loop-network-ms 4] [--json OUT]
 
 Measured on the 2-core AMD EPYC (Zen 4: AVX512_BF16, no AMX) of this project, shared with
-other jobs (load average 7-10 on its 2 cores, so every figure is inflated; the two trees took
-turns), ``--baseline 340f05a`` (the code before these changes), 13 frames x 5 rounds, top_k
-100, median ms per frame, old -> new:
+other jobs (load average about 4 on its 2 cores; the two trees took turns), ``--baseline
+340f05a`` (the code before these changes), 13 frames x 5 rounds, top_k 100, median ms per
+frame, old -> new:
 
 ======================  ==============  ==============
 stage                   paper           default
 ======================  ==============  ==============
-read (PNG decode)       26.7 -> 20.6    21.3 -> 20.4
-transform               21.3 -> 9.9     6.8 -> 1.8
-decode (jitted)         4.3 -> 5.2      2.7 -> 3.7
-NMS                     0.54 -> 0.52    0.36 -> 0.37
-hill climbing           13.5 -> 4.1     11.1 -> 1.9
-post other              1.1 -> 1.1      0.9 -> 0.8
-write                   2.1 -> 2.0      1.7 -> 1.6
-host total (serial)     75.4 -> 47.9    49.0 -> 35.9
-loop non-network        74.8 -> 41.9    43.9 -> 27.0
+read (PNG decode)       10.1 -> 10.3    10.0 -> 9.9
+transform               7.7 -> 3.6      2.8 -> 1.8
+decode (jitted)         0.9 -> 1.0      0.7 -> 0.7
+NMS                     0.46 -> 0.52    0.34 -> 0.39
+hill climbing           5.1 -> 3.6      5.4 -> 2.2
+post other              0.9 -> 1.0      0.9 -> 0.9
+write                   1.2 -> 1.1      1.4 -> 1.1
+host total (serial)     26.3 -> 21.0    24.3 -> 18.2
+loop non-network        25.1 -> 13.2    26.7 -> 13.0
 ======================  ==============  ==============
 
-(71 and 44 detections per frame; result files identical across trees and rounds.) Read and
-decode did not change (their differences are the load); in the loop, reading runs beside
-the rest on the second core, which a 2-core machine with other jobs on it barely has.
+(71 and 44 detections per frame; result files identical across trees and rounds.) With
+``--top-k 4096`` (default config, 980 detections per frame): NMS 612 -> 47, hill climbing
+72 -> 25, write 13.6 -> 4.8, loop non-network 747 -> 101. Two other runs, loop non-network:
+paper 74.8 -> 41.9 and 46.7 -> 30.1, default 43.9 -> 27.0 and 42.2 -> 18.7 (loads 7-10, 2-5).
 """
 
 from __future__ import annotations
