@@ -72,12 +72,15 @@ def _recording_objective(monkeypatch, f):
     """Replaces the IoU with f(ry) and records every batch of evaluated angles."""
     calls = []
 
-    def objective(box2d, location, dims, ry, P, size):
-        ry = np.asarray(ry, np.float64).reshape(-1)
-        calls.append(ry.copy())
-        return f(ry)
+    def objective(box2d, location, dims, P, size):
+        def iou(rows, ry):
+            ry = np.asarray(ry, np.float64).reshape(-1)
+            calls.append(ry.copy())
+            return f(ry)
 
-    monkeypatch.setattr(hc, "consistency_iou", objective)
+        return iou
+
+    monkeypatch.setattr(hc, "consistency_objective", objective)
     return calls
 
 

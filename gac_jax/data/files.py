@@ -66,10 +66,10 @@ def read_bytes(path: str | os.PathLike, what: str = "file") -> bytes:
 
 def decode_image(data: bytes, path: str | os.PathLike = "<bytes>") -> np.ndarray:
     """Decodes PNG/JPEG bytes to an (H, W, 3) uint8 RGB array."""
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR_RGB)  # no BGR pass
     if img is None:
         raise KittiFormatError(path, "not a readable image (corrupt or unsupported file)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return img
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:

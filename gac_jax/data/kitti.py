@@ -331,20 +331,24 @@ def format_label(objects: KittiObjects, with_score: bool | None = None) -> str:
     """KITTI text for ``objects``; scores are written if ``with_score`` (default: if any is set)."""
     if with_score is None:
         with_score = bool(len(objects)) and not np.all(np.isnan(objects.score))
-    lines = []
-    for i in range(len(objects)):
-        x1, y1, x2, y2 = objects.bbox[i]
-        h, w, l = objects.dimensions[i]
-        x, y, z = objects.location[i]
-        line = (
-            f"{objects.type[i]} {objects.truncated[i]:.2f} {int(objects.occluded[i])} "
-            f"{objects.alpha[i]:.6f} {x1:.2f} {y1:.2f} {x2:.2f} {y2:.2f} "
-            f"{h:.6f} {w:.6f} {l:.6f} {x:.6f} {y:.6f} {z:.6f} {objects.rotation_y[i]:.6f}"
-        )
-        if with_score:
-            line += f" {objects.score[i]:.6f}"
-        lines.append(line)
-    return "".join(line + "\n" for line in lines)
+    # One format per line over Python floats (tolist: the same values as the array
+    # elements, formatted alike, without indexing numpy arrays field by field).
+    line = "{} {:.2f} {} {:.6f} " + "{:.2f} " * 4 + " ".join(["{:.6f}"] * 7)
+    columns = [
+        objects.type.tolist(),
+        objects.truncated.tolist(),
+        [int(v) for v in objects.occluded.tolist()],
+        objects.alpha.tolist(),
+        *np.asarray(objects.bbox).T.tolist(),
+        *np.asarray(objects.dimensions).T.tolist(),
+        *np.asarray(objects.location).T.tolist(),
+        objects.rotation_y.tolist(),
+    ]
+    if with_score:
+        line += " {:.6f}"
+        columns.append(objects.score.tolist())
+    line += "\n"
+    return "".join(line.format(*row) for row in zip(*columns, strict=True))
 
 
 def write_label(

@@ -364,10 +364,16 @@ class Normalize:
     std: Sequence[float] = IMAGENET_STD
 
     def __call__(self, sample: Sample) -> Sample:
-        mean = np.asarray(self.mean, np.float32)
-        std = np.asarray(self.std, np.float32)
-        image = (np.asarray(sample["image"], np.float32) / np.float32(255.0) - mean) / std
-        return {**sample, "image": image.astype(np.float32)}
+        image = np.asarray(sample["image"], np.float32)
+        channels = image.shape[-1]
+        # The same three float32 operations per element, on rows of W * C values with the
+        # mean/std tiled along them: numpy's loops over a trailing axis of 3 were ~10x slower.
+        rows = np.ascontiguousarray(image).reshape(-1, image.shape[-2] * channels)
+        reps = rows.shape[1] // channels
+        out = rows / np.float32(255.0)
+        out -= np.tile(np.asarray(self.mean, np.float32), reps)
+        out /= np.tile(np.asarray(self.std, np.float32), reps)
+        return {**sample, "image": out.reshape(image.shape)}
 
 
 @dataclasses.dataclass

@@ -15,7 +15,10 @@ kept after a move. The result is wrapped to ``(-pi, pi]``.
 
 All functions are numpy (float64) host code; :func:`optimize_rotation_y_batch`
 advances every detection of an image together, one vectorised projection per
-iteration.
+iteration (:func:`consistency_objective`: the corner offsets, 2D boxes and their
+areas are set up once per image, and an iteration whose boxes lie in front of the
+near plane projects only the 8 corners; the IoUs are bit-identical to
+:func:`consistency_iou`'s).
 """
 
 from __future__ import annotations
@@ -62,16 +65,26 @@ def projected_box(
     return boxes[0] if single else boxes
 
 
-def paired_iou(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
-    """IoU of corresponding xyxy boxes: (N, 4), (N, 4) -> (N,); 0 for empty or NaN boxes."""
+def box_area(boxes: np.ndarray) -> np.ndarray:
+    """Areas (N,) of xyxy boxes (N, 4); 0 for inverted boxes, NaN for NaN boxes."""
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    return np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
+
+
+def paired_iou(
+    boxes_a: np.ndarray, boxes_b: np.ndarray, area_a: np.ndarray | None = None
+) -> np.ndarray:
+    """IoU of corresponding xyxy boxes: (N, 4), (N, 4) -> (N,); 0 for empty or NaN boxes.
+
+    ``area_a``: :func:`box_area` of ``boxes_a`` when the caller has it already.
+    """
     a = np.asarray(boxes_a, np.float64).reshape(-1, 4)
     b = np.asarray(boxes_b, np.float64).reshape(-1, 4)
-    area_a = np.clip(a[:, 2] - a[:, 0], 0, None) * np.clip(a[:, 3] - a[:, 1], 0, None)
-    area_b = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
+    area_a = box_area(a) if area_a is None else area_a
     iw = np.minimum(a[:, 2], b[:, 2]) - np.maximum(a[:, 0], b[:, 0])
     ih = np.minimum(a[:, 3], b[:, 3]) - np.maximum(a[:, 1], b[:, 1])
     inter = np.clip(iw, 0, None) * np.clip(ih, 0, None)
-    union = area_a + area_b - inter
+    union = area_a + box_area(b) - inter
     with np.errstate(invalid="ignore", divide="ignore"):
         iou = inter / union
     return np.where((union > 0) & np.isfinite(iou), iou, 0.0)
@@ -91,6 +104,65 @@ def consistency_iou(
     return paired_iou(box2d, proj)
 
 
+NEAR = 0.1  # metres: the near plane of geometry.box2d_from_corners
+
+
+def consistency_objective(
+    boxes2d: np.ndarray,
+    locations: np.ndarray,
+    dims: np.ndarray,
+    P2: np.ndarray,
+    image_size: tuple[int, int],
+):
+    """``iou(rows, ry) -> (len(rows),)``: :func:`consistency_iou` of detections ``rows`` at ``ry``.
+
+    The hill climbing's objective with everything that does not depend on the yaw
+    computed once: the corners' offsets in the object frame, the bottom/top corner
+    heights, and the 2D boxes and their areas. Each call performs the same float64
+    operations per element as :func:`consistency_iou` (corners as
+    :func:`gac_jax.geometry.box3d_corners` computes them, the same ``@ P2.T``
+    projection, clip and IoU), so the values are bit-identical; when every corner
+    lies in front of the near plane (no edge to cut) it projects only the 8 corners,
+    otherwise it runs :func:`gac_jax.geometry.box2d_from_corners` on them.
+
+    Args:
+      boxes2d: (N, 4) xyxy network 2D boxes in the pixels of ``P2``'s image.
+      locations: (N, 3) bottom-face centres, camera frame (metres).
+      dims: (N, 3) ``(h, w, l)``.
+      P2: (3, 4) projection; image_size: ``(H, W)``.
+    """
+    boxes2d = np.asarray(boxes2d, np.float64).reshape(-1, 4)
+    loc = np.asarray(locations, np.float64).reshape(-1, 3)
+    dim = np.asarray(dims, np.float64).reshape(-1, 3)
+    P = np.asarray(P2, np.float64)
+    height, width = float(image_size[0]), float(image_size[1])
+    bounds = np.array([width, height, width, height])  # projected_box's clip, as one array
+    area2d = box_area(boxes2d)
+    h, w, l = dim[:, 0:1], dim[:, 1:2], dim[:, 2:3]
+    # Object-frame corner offsets (N, 8) in box3d_corners' order; y does not rotate.
+    x = np.concatenate([l, l, -l, -l, l, l, -l, -l], axis=1) / 2.0
+    z = np.concatenate([w, -w, -w, w, w, -w, -w, w], axis=1) / 2.0
+    y = np.concatenate([np.zeros_like(h)] * 4 + [-h] * 4, axis=1) + loc[:, 1:2]
+    loc_x, loc_z = loc[:, 0:1], loc[:, 2:3]
+
+    def iou(rows: np.ndarray, ry: np.ndarray) -> np.ndarray:
+        c, s = np.cos(ry)[:, None], np.sin(ry)[:, None]
+        xr, zr = x[rows], z[rows]
+        corners = np.stack(
+            [(c * xr + s * zr) + loc_x[rows], y[rows], (c * zr - s * xr) + loc_z[rows]], axis=-1
+        )
+        hom = corners @ P[:, :3].T + P[:, 3]  # (M, 8, 3)
+        depth = hom[..., 2]
+        if np.all(depth > NEAR):
+            uv = hom[..., :2] / depth[..., None]
+            boxes = np.concatenate([uv.min(axis=1), uv.max(axis=1)], axis=1)
+        else:
+            boxes = geometry.box2d_from_corners(corners, P, near=NEAR)
+        return paired_iou(boxes2d[rows], np.clip(boxes, 0.0, bounds), area2d[rows])
+
+    return iou
+
+
 def optimize_rotation_y_batch(
     boxes2d: np.ndarray,
     locations: np.ndarray,
@@ -107,9 +179,10 @@ def optimize_rotation_y_batch(
 
     Each detection follows the reference schedule independently (its own step
     and stop condition); the loop only shares the vectorised projection of the
-    ``ry +- s`` candidates of the detections still searching. Every move
-    strictly increases the IoU, so the search ends; ``max_iterations`` is only
-    a guard against pathological float cycles (never reached in practice).
+    ``ry +- s`` candidates of the detections still searching
+    (:func:`consistency_objective`). Every move strictly increases the IoU, so the
+    search ends; ``max_iterations`` is only a guard against pathological float
+    cycles (never reached in practice).
 
     Args:
       boxes2d: (N, 4) xyxy network 2D boxes in the pixels of ``P2``'s image.
@@ -133,28 +206,23 @@ def optimize_rotation_y_batch(
         )
     if n == 0:
         return ry
+    objective = consistency_objective(boxes2d, loc, dim, P2, image_size)
     step = np.full(n, float(initial_step))
-    best = consistency_iou(boxes2d, loc, dim, ry, P2, image_size)
+    best = objective(np.arange(n), ry)
     for _ in range(max_iterations):
         act = np.flatnonzero(step > min_step)
         if act.size == 0:
             break
         m = act.size
-        cand = np.concatenate([ry[act] + step[act], ry[act] - step[act]])
-        iou = consistency_iou(
-            np.tile(boxes2d[act], (2, 1)),
-            np.tile(loc[act], (2, 1)),
-            np.tile(dim[act], (2, 1)),
-            cand,
-            P2,
-            image_size,
-        )
+        cur_ry, cur_step = ry[act], step[act]
+        cand = np.concatenate([cur_ry + cur_step, cur_ry - cur_step])
+        iou = objective(np.concatenate([act, act]), cand)
         plus, minus, cur = iou[:m], iou[m:], best[act]
         go_plus = (plus > cur) & (plus > minus)
         go_minus = ~go_plus & (minus > cur)
-        ry[act] = np.where(go_plus, cand[:m], np.where(go_minus, cand[m:], ry[act]))
+        ry[act] = np.where(go_plus, cand[:m], np.where(go_minus, cand[m:], cur_ry))
         best[act] = np.where(go_plus, plus, np.where(go_minus, minus, cur))
-        step[act] = np.where(go_plus | go_minus, step[act], step[act] / 2.0)
+        step[act] = np.where(go_plus | go_minus, cur_step, cur_step / 2.0)
     return geometry.wrap_angle(ry)
 
 

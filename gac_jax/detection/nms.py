@@ -9,12 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 
-def box_iou_matrix(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
-    """IoU (Na, Nb) of xyxy boxes (continuous coordinates: area = (x2-x1)*(y2-y1))."""
-    a = np.asarray(boxes_a, np.float64).reshape(-1, 4)
-    b = np.asarray(boxes_b, np.float64).reshape(-1, 4)
-    area_a = np.clip(a[:, 2] - a[:, 0], 0, None) * np.clip(a[:, 3] - a[:, 1], 0, None)
-    area_b = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
+def _iou_rows(a: np.ndarray, area_a: np.ndarray, b: np.ndarray, area_b: np.ndarray) -> np.ndarray:
+    """IoU (Na, Nb) of float64 xyxy boxes ``a``, ``b`` with their areas (clipped at 0)."""
     iw = np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0])
     ih = np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1])
     inter = np.clip(iw, 0, None) * np.clip(ih, 0, None)
@@ -22,30 +18,54 @@ def box_iou_matrix(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
 
 
-def nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
+def _areas(boxes: np.ndarray) -> np.ndarray:
+    return np.clip(boxes[:, 2] - boxes[:, 0], 0, None) * np.clip(boxes[:, 3] - boxes[:, 1], 0, None)
+
+
+def box_iou_matrix(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
+    """IoU (Na, Nb) of xyxy boxes (continuous coordinates: area = (x2-x1)*(y2-y1))."""
+    a = np.asarray(boxes_a, np.float64).reshape(-1, 4)
+    b = np.asarray(boxes_b, np.float64).reshape(-1, 4)
+    return _iou_rows(a, _areas(a), b, _areas(b))
+
+
+def nms(
+    boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, block: int = 256
+) -> np.ndarray:
     """Indices of the boxes kept by greedy NMS, in descending score order.
 
     A box is suppressed when its IoU with an already kept, higher-scoring box
     is strictly greater than ``iou_threshold`` (torchvision's rule). Ties in
     score keep the lower index first (stable).
 
+    The IoUs are computed a block of ``block`` boxes at a time (the next unsuppressed
+    boxes against the unsuppressed rest), with the same per-pair arithmetic as
+    :func:`box_iou_matrix`, so the decisions equal those of the full ``N x N``
+    matrix while the memory and work follow the kept boxes.
+
     Args:
       boxes: (N, 4) xyxy.
       scores: (N,).
+      block: boxes per IoU block.
     """
     boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
     scores = np.asarray(scores, np.float64).reshape(-1)
     order = np.argsort(-scores, kind="stable")
     if order.size == 0:
         return order.astype(np.int64)
-    iou = box_iou_matrix(boxes[order], boxes[order])
-    suppressed = np.zeros(order.size, bool)
+    boxes = boxes[order]
+    areas = _areas(boxes)
+    alive = np.arange(order.size)  # sorted positions not yet visited or suppressed
     keep = []
-    for i in range(order.size):
-        if suppressed[i]:
-            continue
-        keep.append(i)
-        suppressed |= iou[i] > iou_threshold
+    while alive.size:
+        head = alive[:block]
+        iou = _iou_rows(boxes[head], areas[head], boxes[alive], areas[alive])
+        suppressed = np.zeros(alive.size, bool)
+        for j in range(head.size):
+            if not suppressed[j]:
+                keep.append(head[j])
+                suppressed |= iou[j] > iou_threshold
+        alive = alive[head.size :][~suppressed[head.size :]]
     return order[np.asarray(keep, np.int64)]
 
 
