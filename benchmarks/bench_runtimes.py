@@ -62,6 +62,7 @@ def quantized(task, config, onnx_path: Path, size, keep, args, tmp: Path) -> Pat
     import openvino as ov
 
     from gac_jax.deploy.int8 import calibration_frames, quantize_model
+    from gac_jax.geometry import level_plane
 
     if task == "detect3d":
         feeds, _ = calibration_frames(task, config, args.int8_frames, 0)
@@ -69,7 +70,11 @@ def quantized(task, config, onnx_path: Path, size, keep, args, tmp: Path) -> Pat
         rng = np.random.default_rng(1)
         P2 = np.array([[[721.5, 0, size[1] / 2, 45], [0, 721.5, size[0] / 2, 0], [0, 0, 1, 0]]])
         feeds = [
-            {"images": rng.normal(size=(1, *size, 3)).astype(np.float32), "P2": P2.astype("f4")}
+            {
+                "images": rng.normal(size=(1, *size, 3)).astype(np.float32),
+                "P2": P2.astype("f4"),
+                "plane": level_plane()[None].astype("f4"),
+            }
             for _ in range(args.int8_frames)
         ]
     t0 = time.perf_counter()

@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from gac_jax.data.files import KittiFormatError, atomic_write
+from gac_jax.data.loader import plane_array
 from gac_jax.deploy.export import artifact
 
 INT8_MODEL = "model_int8.xml"  # + model_int8.bin (weights)
@@ -152,7 +153,8 @@ def calibration_source(task: str, config):
 
 def calibration_frames(task: str, config, frames: int, seed: int) -> tuple[list[dict], dict]:
     """``frames`` transformed training images (fewer if the split is smaller) as network
-    feeds ``{'images': (1,H,W,3) float32, 'P2': (1,3,4) float32}``, and their description."""
+    feeds ``{'images': (1,H,W,3) float32, 'P2': (1,3,4) float32, 'plane': (1,4) float32}`` (the
+    frame's ground plane, else the config's level one), and their description."""
     source, transform, root = calibration_source(task, config)
     if len(source) == 0:
         raise KittiFormatError(root, f"no frames in the training split {config.data.train_split}")
@@ -165,6 +167,7 @@ def calibration_frames(task: str, config, frames: int, seed: int) -> tuple[list[
             {
                 "images": np.asarray(sample["image"], np.float32)[None],
                 "P2": np.asarray(sample["P2"], np.float32)[None],
+                "plane": plane_array(sample, config.model.gac.camera_height)[None],
             }
         )
         ids.append(f"{sample.get('frame_id', i)}:{sample.get('camera', 2)}")
