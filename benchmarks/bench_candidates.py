@@ -36,7 +36,7 @@ P2 = [[754.4, 0.0, 644.6, 48.8], [0.0, 754.2, 85.9, -0.9], [0.0, 0.0, 1.0, 0.005
 
 
 class GivenOutputs:
-    def apply(self, variables, images, P2, train):
+    def apply(self, variables, images, P2, train, plane=None):
         return variables
 
 

@@ -106,6 +106,7 @@ def paths_for(task, name, args, tmp: Path):
         RuntimeDetectionPredict,
         check_runtime,
     )
+    from gac_jax.geometry import level_plane
 
     config = load_config(str(REPO / CONFIGS[(task, name)]))
     d = config.data
@@ -175,13 +176,14 @@ def paths_for(task, name, args, tmp: Path):
         images = np.random.default_rng(0).normal(size=(1, *size, 3)).astype(np.float32)
         P2 = np.array([[[721.5, 0, size[1] / 2, 45], [0, 721.5, size[0] / 2, 0], [0, 0, 1, 0]]])
         P2 = P2.astype(np.float32)
+        plane = level_plane()[None].astype(np.float32)
         calls = {}
         for key, net in networks.items():
             if key[0] == "jax":
                 fn = jax.jit(lambda v, x, P, m=net: m.apply(v, x, P, train=False)["log_depth"])
                 calls[key] = lambda fn=fn: jax.block_until_ready(fn(variables, images, P2))
             else:
-                calls[key] = lambda net=net: net(images, P2)
+                calls[key] = lambda net=net: net(images, P2, plane)
         return {(f"{k[0]} {k[1]}", "network"): c for k, c in calls.items()}
 
     # detector: full path image file -> KITTI objects, and the network alone
@@ -221,7 +223,7 @@ def paths_for(task, name, args, tmp: Path):
 
         def full(predict=predict):
             batch = load_frame()
-            cand = predict(variables, batch["image"], batch["P2"])
+            cand = predict(variables, batch["image"], batch["P2"], batch["plane"])
             return postprocess(cand, batch, classes, post)
 
         batch = load_frame()
@@ -231,7 +233,7 @@ def paths_for(task, name, args, tmp: Path):
             )
         else:
             calls[(f"{key[0]} {key[1]}", "network")] = lambda net=net, b=batch: net(
-                b["image"], b["P2"]
+                b["image"], b["P2"], b["plane"]
             )
         calls[(f"{key[0]} {key[1]}", "full path")] = full
     return calls

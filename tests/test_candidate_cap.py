@@ -36,7 +36,7 @@ POST = PostprocessConfig(score_threshold=0.75, nms_iou=0.5, hill_climbing=False)
 class FakeDetector:
     """``apply`` returns the outputs passed as ``variables``."""
 
-    def apply(self, variables, images, P2, train):
+    def apply(self, variables, images, P2, train, plane=None):
         return variables
 
 

@@ -48,7 +48,7 @@ class GivenOutputs:
     """Stands in for the Detector in :func:`make_predict_fn`: ``apply`` returns its
     ``variables``, i.e. the network outputs handed in (here: PyTorch's)."""
 
-    def apply(self, variables, images, P2, train):
+    def apply(self, variables, images, P2, train, plane=None):
         return variables
 
 

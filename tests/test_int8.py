@@ -91,7 +91,7 @@ def test_int8_outputs_are_close_to_float32(int8_run):
     q = runtimes.OnnxNetwork(out / int8.INT8_MODEL, "openvino", "int8", **kw)
     assert q.precision_in_effect == "f32"  # the unquantized ops stay float32
     for feed in feeds:
-        a, b = f32(feed["images"], feed["P2"]), q(feed["images"], feed["P2"])
+        a, b = f32(*(feed[k] for k in runtimes.INPUTS)), q(*(feed[k] for k in runtimes.INPUTS))
         for key in runtimes.DETECTOR_OUTPUTS:
             assert relative_rms(a[key], b[key]) <= RMS_TOLERANCE, key
             assert np.corrcoef(a[key].ravel(), b[key].ravel())[0, 1] >= MIN_CORRELATION, key
@@ -159,7 +159,7 @@ def test_int8_depth_network_is_close_to_float32(kitti_samples, tmp_path, capsys)
     q = runtimes.OnnxNetwork(path, "openvino", "int8", **kw)
     feeds, _ = int8.calibration_frames("depth", config, 2, 0)
     for feed in feeds:
-        a, b = f32(feed["images"], feed["P2"]), q(feed["images"], feed["P2"])
+        a, b = f32(*(feed[k] for k in runtimes.INPUTS)), q(*(feed[k] for k in runtimes.INPUTS))
         # log depth around log(prior mean): compare the part the network adds to it
         a0, b0 = a["log_depth"] - a["log_depth"].mean(), b["log_depth"] - a["log_depth"].mean()
         assert relative_rms(a0, b0) <= RMS_TOLERANCE
