@@ -249,10 +249,16 @@ def test_a_second_trainer_and_an_evaluation_are_refused_the_first_finishes_unhar
     first = train_py(args)
     request.addfinalizer(lambda: first.poll() is None and first.kill())
     lock = workdir / ".lock"
-    wait_for(lambda: lock.exists() and lock.read_text().strip(), first, 300, "the lock")
+    config = workdir / "config.json"  # written after the lock is taken
+    wait_for(
+        lambda: lock.exists() and lock.read_text().strip() and config.exists(),
+        first,
+        300,
+        "the lock and config.json",
+    )
     first.send_signal(signal.SIGSTOP)  # it holds the folder while the others try
     try:
-        config_before = (workdir / "config.json").read_text()
+        config_before = config.read_text()
         second = train_py([*args, "train.learning_rate=1e-2"])
         evaluation = subprocess.Popen(
             [sys.executable, str(REPO / "evaluate.py"), "--task", "detect3d"]
