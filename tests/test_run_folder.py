@@ -461,3 +461,17 @@ def test_evaluate_on_a_full_disk_names_the_file(
     assert lines[0].startswith(f"error: {workdir / 'eval'}"), err  # the file, not ": No space"
     assert ": no space left on device (" in lines[0] and lines[0].endswith(" MB free)"), err
     assert not workdir_lock.is_held(workdir)
+
+
+def test_atomic_writes_get_the_mode_of_a_plain_open(tmp_path):
+    """A file written atomically (config.json, results, the generated dataset) is readable as a
+    plain ``open(path, 'w')`` file would be, not mkstemp's owner-only 0600."""
+    import stat
+
+    from gac_jax.data.files import atomic_write
+
+    with atomic_write(tmp_path / "a.txt") as f:
+        f.write("a")
+    (tmp_path / "b.txt").write_text("b")
+    modes = [stat.S_IMODE((tmp_path / n).stat().st_mode) for n in ("a.txt", "b.txt")]
+    assert modes[0] == modes[1]

@@ -29,6 +29,15 @@ class KittiFormatError(ValueError):
         return (type(self), (self.path, self.problem, self.line))
 
 
+def _file_mode() -> int:
+    umask = os.umask(0)  # (read once, at import: os.umask has no read-only form)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+FILE_MODE = _file_mode()  # the mode a plain open(path, "w") gives under this umask
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator:
     """Opens a temporary file beside ``path`` and renames it over ``path`` on success.
@@ -42,6 +51,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with naming(path), os.fdopen(fd, mode) as f:
+            os.fchmod(f.fileno(), FILE_MODE)  # mkstemp makes 0600; give what open() would
             yield f
         os.replace(tmp, path)
     except BaseException:
