@@ -86,6 +86,24 @@ def kitti_samples_full() -> Path:
     return KITTI_SAMPLES
 
 
+def tiny_train_args(root: Path, workdir: Path) -> list[str]:
+    """``train.py`` arguments of the ``:tiny`` detector on the vendored real frames (split
+    ``labeled``, left images) in ``workdir``; tests append their own overrides."""
+    return [
+        "--task",
+        "detect3d",
+        "--config",
+        str(REPO_ROOT / "configs" / "detect3d_default.py:tiny"),
+        "--workdir",
+        str(workdir),
+        "data.source=kitti",
+        f"data.root={root}",
+        "data.train_split=labeled",
+        "data.val_split=labeled",
+        "data.use_right_image=False",
+    ]
+
+
 TINY_DETECT3D_OVERRIDES = (
     "data.source=kitti",
     "data.train_split=labeled",

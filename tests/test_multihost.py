@@ -44,6 +44,7 @@ import numpy as np
 import pytest
 
 from gac_jax.training.checkpointing import Checkpoints
+from tests.conftest import tiny_train_args
 
 REPO = Path(__file__).resolve().parents[1]
 TOTAL_STEPS = 12
@@ -73,17 +74,7 @@ def free_port() -> int:
 
 def tiny_args(root: Path, workdir: Path) -> list[str]:
     return [
-        "--task",
-        "detect3d",
-        "--config",
-        str(REPO / "configs" / "detect3d_default.py:tiny"),
-        "--workdir",
-        str(workdir),
-        "data.source=kitti",
-        f"data.root={root}",
-        "data.train_split=labeled",
-        "data.val_split=labeled",
-        "data.use_right_image=False",
+        *tiny_train_args(root, workdir),
         "data.batch_size=4",
         f"train.num_steps={TOTAL_STEPS}",
         "train.log_every=1",

@@ -44,6 +44,7 @@ from gac_jax.trainers import depth, detect3d
 from gac_jax.training import workdir_lock
 from gac_jax.training.checkpointing import TMP_MARKER, Checkpoints
 from gac_jax.training.metrics_writer import MetricsWriter
+from tests.conftest import tiny_train_args
 
 REPO = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, PYTHONPATH=str(REPO))
@@ -52,17 +53,7 @@ STEPS = 8  # detector runs: checkpoints 4 and 8
 
 def detect3d_args(root: Path, workdir: Path) -> list[str]:
     return [
-        "--task",
-        "detect3d",
-        "--config",
-        str(REPO / "configs" / "detect3d_default.py:tiny"),
-        "--workdir",
-        str(workdir),
-        "data.source=kitti",
-        f"data.root={root}",
-        "data.train_split=labeled",
-        "data.val_split=labeled",
-        "data.use_right_image=False",
+        *tiny_train_args(root, workdir),
         f"train.num_steps={STEPS}",
         "train.checkpoint_every=4",
         "train.log_every=1",
