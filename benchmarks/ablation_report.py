@@ -12,6 +12,7 @@ import json
 import math
 import re
 import statistics
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,36 +20,27 @@ DONE_MARKER = "ablation_run.json"
 FAILED_MARKER = "ablation_failed.json"
 PLAN = "plan.json"
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-# Paper Table 3 ("3D Detection Ablation Study Results of Car on KITTI Validation Set",
-# paper_gac.tex, tab:ablation_study), 3D AP|R40 easy / moderate / hard in %.
-PAPER_TABLE3 = {
-    "baseline": {"3D@0.7": (23.63, 16.16, 12.06), "3D@0.5": (60.92, 42.18, 32.02)},
-    "nofilter": {"3D@0.7": (21.39, 14.35, 11.11), "3D@0.5": (59.76, 41.00, 31.10)},
-    "ohem": {"3D@0.7": (22.45, 15.10, 11.29), "3D@0.5": (60.71, 42.01, 31.88)},
-    "conv": {"3D@0.7": (21.57, 15.26, 11.35), "3D@0.5": (58.17, 41.17, 32.58)},
-    "disparity": {"3D@0.7": (22.13, 15.42, 11.34), "3D@0.5": (60.13, 41.62, 33.07)},
-    "deformable": {"3D@0.7": (22.16, 15.71, 11.75), "3D@0.5": (62.24, 43.93, 33.76)},
-}
-PAPER_TABLE3_NAMES = {
-    "baseline": "Baseline Model",
-    "nofilter": "w/o Anchor Filtering",
-    "ohem": "w OHEM",
-    "conv": "w Conv",
-    "disparity": "w DisparityConv",
-    "deformable": "w Deformable Conv",
-}
-# Paper depth table (tab:depth_validation_results, KITTI depth val).
-PAPER_DEPTH = {
-    "base": {"silog": 12.78, "sq_rel": 3.11, "abs_rel": 10.12, "irmse": 13.46},
-    "gac": {"silog": 12.13, "sq_rel": 2.61, "abs_rel": 9.41, "irmse": 12.65},
-}
-PAPER_DEPTH_NAMES = {"base": "Base U-Net", "gac": "Ours"}
+from ablation_rows import (  # noqa: E402  (benchmarks/ on sys.path)
+    PAPER_DEPTH,
+    PAPER_DEPTH_NAMES,
+    PAPER_TABLE3,
+    PAPER_TABLE3_NAMES,
+    VARIANTS_TEXT,
+    paper_table3_from_tex,
+)
+
+__all__ = ["PAPER_TABLE3", "paper_table3_from_tex", "render", "compose_report"]
 
 
 @dataclass(frozen=True)
 class Task:
-    """What the report shows for one task: metric name -> path into ``metrics.json``."""
+    """What the report shows for one task: metric name -> path into ``metrics.json``.
+
+    ``rows``: the default rows (the paper's); ``variants``: every row the runner knows
+    (row -> config variant), the defaults and the extra ones (``fixedplane``).
+    """
 
     name: str
     rows: tuple[str, ...]
@@ -63,7 +55,7 @@ class Task:
 DETECTION = Task(
     name="detect3d",
     rows=("baseline", "nofilter", "ohem", "conv", "disparity", "deformable"),
-    variants={r: r for r in PAPER_TABLE3},
+    variants={r: r for r in PAPER_TABLE3} | {"fixedplane": "fixedplane"},
     metrics={
         "3D@0.7": ("ap40", "Car", "0.70", "3d"),
         "3D@0.5": ("ap40", "Car", "0.50", "3d"),
@@ -127,16 +119,32 @@ def _dig(tree, keys: tuple[str, ...]):
     return tree
 
 
-def read_run(task: Task, workdir: Path, seed: int) -> RunResult:
-    """The result of one run, from the files in its workdir (see the module docstring)."""
+def eval_file(workdir: Path, split: str) -> Path:
+    """Where the runner keeps a finished run's evaluation on an extra split
+    (``evaluate.py --workdir W --split S --json``: the metrics dict itself)."""
+    return Path(workdir) / "ablation_eval" / f"{split}.json"
+
+
+def read_run(task: Task, workdir: Path, seed: int, split: str | None = None) -> RunResult:
+    """The result of one run, from the files in its workdir (see the module docstring).
+
+    ``split``: an extra split the runner evaluated the finished run on (``eval_file``),
+    instead of the trainer's final evaluation on the config's val split.
+    """
     done = workdir / DONE_MARKER
     if done.exists():
         marker = json.loads(done.read_text())
         step = int(marker["final_step"])
-        metrics_file = workdir / "results" / f"step_{step}" / "metrics.json"
+        if split is None:
+            metrics_file = workdir / "results" / f"step_{step}" / "metrics.json"
+        else:
+            metrics_file = eval_file(workdir, split)
         if not metrics_file.exists():
+            if split is not None:
+                return RunResult(seed, "not evaluated", step=step, note=f"{split}: not yet")
             return RunResult(seed, "failed", step=step, note=f"{metrics_file} missing")
-        metrics = json.loads(metrics_file.read_text())["metrics"]
+        metrics = json.loads(metrics_file.read_text())
+        metrics = metrics["metrics"] if split is None else metrics
         values = {}
         for name, keys in task.metrics.items():
             value = _dig(metrics, keys)
@@ -178,9 +186,9 @@ class RowStats:
         }
 
 
-def collect(task: Task, out: Path, rows, seeds) -> list[RowStats]:
+def collect(task: Task, out: Path, rows, seeds, split: str | None = None) -> list[RowStats]:
     return [
-        RowStats(row, [read_run(task, run_dir(out, task.name, row, s), s) for s in seeds])
+        RowStats(row, [read_run(task, run_dir(out, task.name, row, s), s, split) for s in seeds])
         for row in rows
     ]
 
@@ -259,10 +267,11 @@ def sentences(task: Task, stats: list[RowStats]) -> list[str]:
 
 
 def task_section(task: Task, out: Path, plan: dict) -> str:
+    """One task's section: its set-up, the tables on the config's val split and on every
+    extra split of ``plan['eval_splits']``, and what differs beyond the seed spread."""
     rows, seeds = plan["rows"], plan["seeds"]
-    stats = collect(task, out, rows, seeds)
     lines = []
-    lines.append(f"## {TITLES[task.name]}\n")
+    lines.append(f"## {plan.get('title') or TITLES[task.name]}\n")
     extra = " ".join(plan.get("overrides", [])) or "none"
     lines.append(
         f"Config `{plan['config']}` (row = variant), overrides: `{extra}`; seeds "
@@ -271,14 +280,23 @@ def task_section(task: Task, out: Path, plan: dict) -> str:
     )
     if plan.get("command"):
         lines.append(f"```bash\n{plan['command']}\n```\n")
+    for split in (None, *plan.get("eval_splits", [])):
+        lines.extend(_split_tables(task, out, rows, seeds, split))
+    return "\n".join(lines)
+
+
+def _split_tables(task: Task, out: Path, rows, seeds, split: str | None) -> list[str]:
+    stats = collect(task, out, rows, seeds, split)
+    where = "the generated val split" if split is None else f"the generated split `{split}`"
+    lines = [] if split is None else [f"### On split `{split}`\n"]
     if task.name == "detect3d":
         lines.append(
-            "Car AP|R40 in %, **moderate**, on the generated val split: mean ± sample std "
+            f"Car AP|R40 in %, **moderate**, on {where}: mean ± sample std "
             "[min, max] over the finished seeds. Paper: KITTI val, Table 3 (3D only).\n"
         )
     else:
         lines.append(
-            "KITTI depth metrics on the generated val split (lower is better): mean ± sample "
+            f"KITTI depth metrics on {where} (lower is better): mean ± sample "
             "std [min, max] over the finished seeds. Paper: KITTI depth val.\n"
         )
     names = list(task.metrics)
@@ -310,7 +328,7 @@ def task_section(task: Task, out: Path, plan: dict) -> str:
     lines.append("")
     for sentence in sentences(task, stats):
         lines.extend([sentence, ""])
-    return "\n".join(lines)
+    return lines
 
 
 def shown(path: Path) -> str:
@@ -324,8 +342,9 @@ def read_plan(out: Path) -> dict:
     return json.loads(path.read_text()) if path.exists() else {}
 
 
-def render(out: Path) -> str:
-    plan = read_plan(out)
+def render(out: Path, plan: dict | None = None) -> str:
+    """The whole report: header, the rows, each task of ``OUT/plan.json`` (or ``plan``)."""
+    plan = read_plan(out) if plan is None else plan
     parts = [
         "# Ablations with seed spread (generated)\n",
         "Written by `benchmarks/ablation_table.py` from the runs it finished; do not edit by "
@@ -354,65 +373,41 @@ def render(out: Path) -> str:
     return "\n".join(parts)
 
 
-VARIANTS_TEXT = """## The rows
+def _section_marks(name: str) -> tuple[str, str]:
+    return (
+        f"<!-- ablation section {name}: written by benchmarks/ablation_table.py --section "
+        f"{name}; do not edit by hand -->",
+        f"<!-- end of ablation section {name} -->",
+    )
 
-Detection rows are variants of `configs/detect3d_default.py` (the same names work on
-`configs/detect3d_kitti.py`, e.g. `configs/detect3d_kitti.py:ohem`):
-"""
 
-VARIANT_ROWS = (
-    (
-        "baseline",
-        "nothing: ground-aware convolution (GAC) in the regression branch, ground-plane anchor "
-        "filter in training and at test",
-    ),
-    ("nofilter", "`anchors.filter=False`: every anchor is used in training and at test"),
-    (
-        "ohem",
-        "no ground-plane filter; in training, per image, the easiest half of the negative "
-        "anchors leaves the loss (`loss.ohem_drop_fraction=0.5`); no filter at test",
-    ),
-    ("conv", "GAC replaced by conv3x3 C->C + ReLU"),
-    ("disparity", "GAC replaced by conv3x3 over [disparity prior map, features] (C+1 -> C) + ReLU"),
-    (
-        "deformable",
-        "GAC replaced by a modulated deformable conv v2 3x3 C->C + ReLU "
-        "(`gac_jax/models/deformable_conv.py`): per-pixel tap offsets and masks from a "
-        "zero-initialised 3x3 conv as in DCNv2, so it starts as half a plain conv",
-    ),
+SECTION_RE = re.compile(
+    r"<!-- ablation section (?P<name>[\w.-]+):.*?-->\n.*?<!-- end of ablation section "
+    r"(?P=name) -->\n?",
+    re.S,
 )
-VARIANTS_TEXT += "\n| row | paper Table 3 | what changes |\n|---|---|---|\n" + "".join(
-    f"| `{row}` | {PAPER_TABLE3_NAMES[row]} | {text} |\n" for row, text in VARIANT_ROWS
-)
-VARIANTS_TEXT += """
-OHEM exactly (`gac_jax/detection/detection_loss.py`, `ohem_negative_mask`): the paper says only "we
-filter out half of the easy negative anchors during training". Here, per image `j`, after
-the usual assignment (positive at IoU >= 0.5, negative below 0.4, ignored between), the
-`floor(0.5 * num_neg_j)` negatives with the lowest classification loss (the focal loss of the
-anchor summed over classes, computed before the reference's zeroing of losses below 1e-5;
-among equal losses the lower anchor index goes first) are treated like ignored anchors: they
-add nothing to the focal-loss sum and are not counted in the normaliser `num_pos_j +
-num_neg_j`, just as anchors removed by the ground filter are not. The selection is per image
-(not per batch: the ground filter, which removes about half of the negatives, is per image
-too, and a per-image choice does not depend on how a batch is split over devices), it carries
-no gradient, and positives, ignored anchors and the regression terms are unchanged. It acts on
-top of the focal loss, which already down-weights easy negatives by `p^2`: the dropped half
-contributes little loss anyway, so the main effect is the smaller normaliser (about twice the
-classification loss per anchor, as with the ground filter) and that the easiest half gives no
-gradient at all.
-
-Depth rows: `base` = `configs/depth_default.py:base` (the paper's "Base U-Net", no GAC) and
-`gac` = `configs/depth_default.py` (the GAC U-Net).
-"""
 
 
-def paper_table3_from_tex(tex: str) -> dict[str, dict[str, tuple[float, ...]]]:
-    """Parses tab:ablation_study of the paper source (to check :data:`PAPER_TABLE3`)."""
-    start = tex.index(r"\caption{3D Detection Ablation Study")
-    body = tex[start : tex.index(r"\end{tabular*}", start)]
-    out = {}
-    for row, name in PAPER_TABLE3_NAMES.items():
-        line = next(ln for ln in body.splitlines() if name in ln)
-        numbers = [float(x) for x in re.findall(r"(\d+\.\d+)", line)]
-        out[row] = {"3D@0.7": tuple(numbers[:3]), "3D@0.5": tuple(numbers[3:6])}
-    return out
+def render_section(out: Path, name: str) -> str:
+    """The tasks of ``OUT/plan.json`` as one named section (between markers), for a report
+    that also shows other experiments (another ``--out``), e.g. the multi-rig runs."""
+    plan = read_plan(out)
+    start, end = _section_marks(name)
+    body = [task_section(TASKS[t], Path(out), plan[t]) for t in TASKS if t in plan]
+    return "\n".join([start, *body, end]) + "\n"
+
+
+def compose_report(old: str, out: Path, section: str | None = None) -> str:
+    """The report file after a runner call: ``section=None`` rewrites the main part (the
+    paper's tables, :func:`render`) and keeps every named section of ``old``; a named
+    section replaces its earlier version in place or is appended, the rest of ``old`` kept."""
+    blocks = {m["name"]: m.group(0) for m in SECTION_RE.finditer(old)}
+    if section is None:
+        kept = "".join(b if b.endswith("\n") else b + "\n" for b in blocks.values())
+        return render(out) + ("\n" + kept if kept else "")
+    new = render_section(out, section)
+    if section in blocks:
+        return old.replace(blocks[section], new)
+    if not old:
+        old = render(out, plan={})  # the header and the rows; the main runs not run yet
+    return old.rstrip("\n") + "\n\n" + new

@@ -8,13 +8,20 @@
         --out workdirs/ablations
     # the report alone, from whatever exists
     python benchmarks/ablation_table.py --report-only --out workdirs/ablations
+    # multi-rig data: GAC with the frames' planes vs the fixed 1.65 m plane vs a plain conv,
+    # also on the held-out rigs, as its own section of the report
+    python benchmarks/ablation_table.py --rows baseline,conv,fixedplane --seeds 0,1,2 \\
+        --config configs/detect3d_default.py:multirig --eval-splits val_heldout \\
+        --section multirig --out workdirs/ablations_multirig
 
 One workdir per (row, seed): ``OUT/<task>/<row>/seed_<s>``, trained by ``train.py --task T
 --config CONFIG:<variant> --workdir W seed=<s> [overrides]`` in a child process (its output
 goes to ``W/train.log`` and to this terminal). ``seed`` sets the model init, the dropout keys
 and the training-data order (the generated dataset itself is fixed by
 ``data.synthetic.seed``). A run the runner saw finish (exit 0) gets ``W/ablation_run.json``
-and is skipped afterwards; any other workdir is handed to ``train.py`` again, which resumes
+and is skipped afterwards (``--eval-splits``: each finished run is then evaluated once on
+those splits by ``evaluate.py --workdir W --split S --json W/ablation_eval/S.json``); any
+other workdir is handed to ``train.py`` again, which resumes
 from its last checkpoint (and redoes only the unwritten result files of an interrupted final
 evaluation). ``OUT/plan.json`` records each task's config, overrides, rows and seeds: a later
 call with another config or other overrides for the same task is refused, so one table never
@@ -23,7 +30,10 @@ and lists unfinished seeds as such.
 
 Rows: detection ``baseline`` (the GAC model), ``nofilter``, ``ohem``, ``conv``, ``disparity``,
 ``deformable`` (variants of ``configs/detect3d_default.py``, see ``configs/detect3d_kitti.py``);
-depth ``base`` (``configs/depth_default.py:base``) and ``gac`` (the default). Exit status: 0
+depth ``base`` (``configs/depth_default.py:base``) and ``gac`` (the default); ``fixedplane``
+(not a paper row: the baseline with the frames' ``planes/`` ignored). ``--section NAME``
+writes the tables of this ``--out`` as a named block of the report that later calls for other
+``--out`` folders (and the paper's tables) keep. Exit status: 0
 when every requested run finished, 1 if one failed (the others still ran), 2 on bad arguments.
 """
 
@@ -47,8 +57,10 @@ from ablation_report import (  # noqa: E402  (benchmarks/ on sys.path)
     FAILED_MARKER,
     PLAN,
     TASKS,
+    compose_report,
+    eval_file,
     last_train_step,
-    render,
+    read_plan,
     run_dir,
 )
 from machine_info import cpu_model  # noqa: E402
@@ -67,6 +79,18 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--config", help="config file[:variant] (default: the task's default config)")
     p.add_argument("--report", default=str(REPO / "docs" / "ablations.md"), help="markdown out")
     p.add_argument("--report-only", action="store_true", help="write the report, train nothing")
+    p.add_argument(
+        "--eval-splits",
+        default="",
+        help="comma-separated extra splits every finished run is evaluated on "
+        "(evaluate.py --workdir W --split S), e.g. val_heldout of :multirig",
+    )
+    p.add_argument(
+        "--section",
+        help="write this --out's tables as the named section of the report (kept apart from "
+        "the paper's tables and from other sections), e.g. multirig",
+    )
+    p.add_argument("--title", help="heading of the task's tables (default: the paper's table)")
     p.add_argument("overrides", nargs="*", help="config overrides for every run, key.sub=value")
     return p.parse_args(argv)
 
@@ -84,8 +108,13 @@ def runner_command(task: str, entry: dict, out: Path) -> str:
         out = out.relative_to(REPO)
     parts = ["python", "benchmarks/ablation_table.py", "--task", task]
     parts += ["--rows", ",".join(entry["rows"]), "--seeds", ",".join(map(str, entry["seeds"]))]
-    parts += ["--out", str(out), "--config", entry["config"], *entry["overrides"]]
-    return shlex.join(parts)
+    parts += ["--out", str(out), "--config", entry["config"]]
+    if entry.get("eval_splits"):
+        parts += ["--eval-splits", ",".join(entry["eval_splits"])]
+    for key in ("section", "title"):
+        if entry.get(key):
+            parts += [f"--{key}", entry[key]]
+    return shlex.join([*parts, *entry["overrides"]])
 
 
 def update_plan(out: Path, task: str, entry: dict) -> dict:
@@ -94,18 +123,21 @@ def update_plan(out: Path, task: str, entry: dict) -> dict:
     plan = json.loads(path.read_text()) if path.exists() else {}
     old = plan.get(task)
     if old is not None:
-        for key in ("config", "overrides"):
-            if old[key] != entry[key]:
+        for key in ("config", "overrides", "section"):
+            if old.get(key) != entry.get(key):
                 print(
                     f"error: {path} holds {task} runs with {key}={old[key]!r}, not "
                     f"{entry[key]!r}; use another --out to run a different set-up",
                     file=sys.stderr,
                 )
                 raise SystemExit(2)
+        splits = old.get("eval_splits", [])
         entry = dict(
             old,
             rows=old["rows"] + [r for r in entry["rows"] if r not in old["rows"]],
             seeds=sorted(set(old["seeds"]) | set(entry["seeds"])),
+            eval_splits=splits + [s for s in entry["eval_splits"] if s not in splits],
+            title=entry.get("title") or old.get("title"),
         )
     entry["command"] = runner_command(task, entry, out)
     plan[task] = entry
@@ -162,6 +194,25 @@ def run_one(task: str, spec: str, workdir: Path, seed: int, overrides: list[str]
     return code
 
 
+def evaluate_split(task: str, workdir: Path, split: str) -> int:
+    """Evaluates a finished run on ``split`` (``evaluate.py --workdir``) into ``eval_file``;
+    returns the exit status. Done once: an existing file is kept."""
+    target = eval_file(workdir, split)
+    if target.exists():
+        return 0
+    cmd = [sys.executable, "evaluate.py", "--task", task, "--workdir", str(workdir)]
+    cmd += ["--split", split, "--json", str(target)]
+    print(f"[ablation] {shlex.join(cmd)}", flush=True)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with open(workdir / f"eval_{split}.log", "a") as log:
+        log.write(f"\n[ablation] {time.strftime('%Y-%m-%d %H:%M:%S')} {shlex.join(cmd)}\n")
+        log.flush()
+        code = subprocess.run(cmd, cwd=REPO, stdout=log, stderr=subprocess.STDOUT).returncode
+    if code != 0:
+        print(f"[ablation] {shlex.join(cmd)}: exit {code} (see {log.name})", flush=True)
+    return code
+
+
 def _previous_wall(workdir: Path) -> float:
     """Wall time of the earlier attempts on ``workdir`` (``wall.json``)."""
     path = workdir / "wall.json"
@@ -175,7 +226,8 @@ def main(argv=None) -> int:
     unknown = [r for r in rows if r not in task.variants]
     if unknown:
         print(
-            f"error: unknown {args.task} rows {unknown}; known: {list(task.rows)}", file=sys.stderr
+            f"error: unknown {args.task} rows {unknown}; known: {list(task.variants)}",
+            file=sys.stderr,
         )
         return 2
     try:
@@ -186,29 +238,38 @@ def main(argv=None) -> int:
         )
         return 2
     out = Path(args.out).resolve()
+    splits = [s for s in args.eval_splits.split(",") if s]
     config = args.config or DEFAULT_CONFIGS[args.task]
     failed = []
     if not args.report_only:
         entry = {"config": config, "overrides": list(args.overrides), "rows": rows}
-        update_plan(out, args.task, entry | {"seeds": seeds})
+        entry |= {"seeds": seeds, "eval_splits": splits, "section": args.section}
+        entry |= {"title": args.title}
+        update_plan(out, args.task, entry)
         # Seed-major: every row gets its first seed before any row gets a second one.
         todo = [(seed, row) for seed in seeds for row in rows]
         for seed, row in todo:
             workdir = run_dir(out, args.task, row, seed)
             if (workdir / DONE_MARKER).exists():
                 print(f"[ablation] {args.task} {row} seed {seed}: finished, skipped")
-                continue
-            code = run_one(
-                args.task, config_spec(config, task.variants[row]), workdir, seed, args.overrides
-            )
+                code = 0
+            else:
+                spec = config_spec(config, task.variants[row])
+                code = run_one(args.task, spec, workdir, seed, args.overrides)
+            for split in splits if code == 0 else ():
+                if evaluate_split(args.task, workdir, split) != 0:
+                    failed.append(f"{row} seed {seed} on {split}")
             if code != 0:
                 failed.append(f"{row} seed {seed} (exit {code})")
                 print(f"[ablation] {args.task} {row} seed {seed}: exit {code}", flush=True)
                 if code == 75:  # stopped on SIGTERM after a checkpoint: stop here, rerun resumes
                     break
+    plan_sections = [e.get("section") for e in read_plan(out).values() if e.get("section")]
+    section = args.section or next(iter(plan_sections), None)
     report = Path(args.report)
+    old = report.read_text() if report.exists() else ""
     with atomic_write(report) as f:
-        f.write(render(out))
+        f.write(compose_report(old, out, section))
     print(f"[ablation] wrote {report}")
     if failed:
         print("[ablation] not finished: " + ", ".join(failed), file=sys.stderr)

@@ -282,3 +282,90 @@ def test_depth_report_lower_is_better(tmp_path):
     assert "`gac` SILog -1.05 (better, beyond the seed spread; paper -0.65, same sign)" in text
     assert "`gac` iRMSE +0.45 (worse, beyond the seed spread; paper -0.81, opposite sign)" in text
     assert "`gac` absRel % -0.10 (better, within the seed spread)" in text
+
+
+def _write_eval(workdir: Path, split: str, values: dict):
+    """What the runner leaves after ``evaluate.py --workdir W --split S --json``."""
+    ap = {
+        "Car": {
+            "0.70": {"bbox": [0, values["2D@0.7"], 0], "3d": [0, values["3D@0.7"], 0]},
+            "0.50": {"bev": [0, values["BEV@0.5"], 0], "3d": [0, values["3D@0.5"], 0]},
+        }
+    }  # fmt: skip
+    path = workdir / "ablation_eval" / f"{split}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"ap40": ap, "ap11": {}}))
+
+
+def test_extra_split_tables_and_named_sections(tmp_path):
+    """A multi-rig experiment: its own section (kept when the paper's tables are rewritten,
+    replaced in place when rerun) with a table per extra split, from the runner's files."""
+    rep = _report_module()
+    out = tmp_path / "multirig"
+    names = ("3D@0.7", "3D@0.5", "BEV@0.5", "2D@0.7")
+    val = {"baseline": [(9, 40, 45, 70), (10, 41, 46, 71)], "fixedplane": [(9, 39, 44, 70)] * 2}
+    held = {"baseline": [(5.0, 30.0, 35, 60), (6.0, 31.0, 36, 61)], "fixedplane": [(2, 20, 25, 50)]}
+    for row, seeds in val.items():
+        for s, v in enumerate(seeds):
+            workdir = out / "detect3d" / row / f"seed_{s}"
+            _fake_run(workdir, dict(zip(names, v, strict=True)))
+            if s < len(held[row]):
+                _write_eval(workdir, "val_heldout", dict(zip(names, held[row][s], strict=True)))
+    plan = {
+        "config": "configs/detect3d_default.py:multirig",
+        "overrides": [],
+        "rows": ["baseline", "fixedplane"],
+        "seeds": [0, 1],
+        "eval_splits": ["val_heldout"],
+        "section": "multirig",
+        "title": "Multi-rig detection",
+    }
+    (out / "plan.json").write_text(json.dumps({"detect3d": plan}))
+    main = tmp_path / "main"
+    _fake_run(
+        main / "detect3d" / "baseline" / "seed_0", dict(zip(names, (1, 2, 3, 4), strict=True))
+    )
+    main_plan = {"config": "c.py", "overrides": [], "rows": ["baseline"], "seeds": [0]}
+    (main / "plan.json").write_text(json.dumps({"detect3d": main_plan}))
+
+    first = rep.compose_report("", out, "multirig")  # no report yet: header + the section
+    assert first.startswith("# Ablations with seed spread (generated)")
+    assert "## Multi-rig detection\n" in first and "### On split `val_heldout`" in first
+    assert "| `fixedplane` | 1 | not evaluated (step 4) |" in first
+    held_part = first[first.index("### On split `val_heldout`") :]
+    assert "| `baseline` | 16.16 | 42.18 | 5.50 ± 0.71 [5.00, 6.00] |" in held_part
+    assert "`fixedplane` 3D@0.5 -1.50 (worse, beyond the seed spread)" in first  # val split
+    assert "Not compared (fewer than 2 finished seeds" in held_part  # fixedplane: 1 seed
+    with_main = rep.compose_report(first, main, None)  # the paper's tables rewritten
+    assert with_main.count("<!-- ablation section multirig:") == 1
+    assert (
+        "## Multi-rig detection" in with_main
+        and "| `baseline` | 0 | done (step 4) | 1.00" in with_main
+    )
+    _write_eval(
+        out / "detect3d" / "fixedplane" / "seed_1",
+        "val_heldout",
+        dict(zip(names, (3, 21, 26, 51), strict=True)),
+    )
+    again = rep.compose_report(with_main, out, "multirig")  # rerun: replaced in place
+    assert again.count("## Multi-rig detection") == 1
+    assert again.index("| `baseline` | 0 | done (step 4) | 1.00") < again.index("## Multi-rig")
+    assert "`fixedplane` 3D@0.5 -10.00 (worse, beyond the seed spread)" in again
+
+
+def test_runner_plan_keeps_extra_splits_and_refuses_another_section(tmp_path, capsys):
+    _report_module()  # puts benchmarks/ on sys.path
+    import importlib
+
+    table = importlib.import_module("ablation_table")
+    entry = {"config": "c.py:multirig", "overrides": [], "rows": ["baseline"], "seeds": [0]}
+    entry |= {"eval_splits": ["val_heldout"], "section": "multirig", "title": "T"}
+    table.update_plan(tmp_path, "detect3d", entry)
+    more = entry | {"rows": ["conv"], "seeds": [1], "eval_splits": ["val_kitti_rig"]}
+    plan = table.update_plan(tmp_path, "detect3d", more | {"title": None})["detect3d"]
+    assert plan["rows"] == ["baseline", "conv"] and plan["seeds"] == [0, 1]
+    assert plan["eval_splits"] == ["val_heldout", "val_kitti_rig"] and plan["title"] == "T"
+    assert "--eval-splits val_heldout,val_kitti_rig --section multirig --title T" in plan["command"]
+    with pytest.raises(SystemExit):
+        table.update_plan(tmp_path, "detect3d", entry | {"section": "other"})
+    assert "section=" in capsys.readouterr().err
