@@ -40,12 +40,12 @@ from gac_jax.cpu_backend import apply_default_xla_flags  # noqa: E402
 
 apply_default_xla_flags()
 
-from machine_info import describe_machine, one_line  # noqa: E402  (benchmarks/ on sys.path)
+from guard_folds import car_ap40, fold_differences  # noqa: E402  (benchmarks/ on sys.path)
+from machine_info import describe_machine, one_line  # noqa: E402
 
 from gac_jax.data.files import KittiFormatError  # noqa: E402
 from gac_jax.deploy.int8 import DEFAULT_FRAMES, Int8Settings  # noqa: E402
 from gac_jax.deploy.runtimes import RuntimeUnavailableError, check_runtime  # noqa: E402
-from gac_jax.evaluation.kitti_object import DIFFICULTIES  # noqa: E402
 
 COMBOS = (
     ("jax", "f32"),
@@ -62,15 +62,6 @@ AP_TOLERANCE = 0.5  # AP points, every Car AP|R40 entry
 SILOG_TOLERANCE = 0.2
 
 
-def car_ap40(metrics: dict) -> dict[str, float]:
-    out = {}
-    for iou, kinds in metrics["ap40"]["Car"].items():
-        for kind, values in kinds.items():
-            for name, v in zip(DIFFICULTIES, values, strict=True):
-                out[f"Car {iou} {kind} {name}"] = float(v)
-    return out
-
-
 @dataclasses.dataclass(frozen=True)
 class Combo:
     """One runtime/precision of the guard; ``int8``: the calibration (int8 only)."""
@@ -82,7 +73,10 @@ class Combo:
     @property
     def label(self) -> str:
         keep = self.int8.keep_float if self.int8 else ()
-        return f"{self.runtime} {self.precision}" + (f" f32[{','.join(keep)}]" if keep else "")
+        seed = f" seed{self.int8.seed}" if self.int8 and self.int8.seed else ""
+        return f"{self.runtime} {self.precision}{seed}" + (
+            f" f32[{','.join(keep)}]" if keep else ""
+        )
 
     @property
     def slug(self) -> str:
@@ -112,7 +106,9 @@ def available(args) -> list[Combo]:
             continue
         for keep in ["", *args.keep_float]:
             scope = tuple(p for p in keep.split(",") if p)
-            combos.append(Combo(runtime, precision, Int8Settings(args.int8_frames, 0, scope)))
+            for seed in args.int8_seeds:
+                settings = Int8Settings(args.int8_frames, seed, scope)
+                combos.append(Combo(runtime, precision, settings))
     if not combos or combos[0] != Combo("jax", "f32"):
         combos.insert(0, Combo("jax", "f32"))  # the reference
     return combos
@@ -148,16 +144,22 @@ def run_detector(workdir, combo: Combo, tmp: Path, split, threads, where=None) -
         )
 
 
-def guard_detector(workdir: str, split, threads, tmp: Path, combos: list[Combo]) -> dict:
-    runs = {}
+def guard_detector(
+    workdir: str, split, threads, tmp: Path, combos: list[Combo], data=None, k: int = 0
+) -> dict:
+    """Every combo on the run's val split (or ``data``'s ``split``); ``k`` >= 2 folds add
+    each entry's fold spread and the ~95 % verdict of :mod:`guard_folds`."""
+    runs, result_dirs = {}, {}
+    where = {"data_root": data} if data else None
     for combo in combos:
         label = combo.label
         print(f"\n=== detector, {label} ===", flush=True)
         with skipped_on_error() as skipped:  # e.g. a --keep-float scope this net lacks
-            summary = run_detector(workdir, combo, tmp / "det", split, threads)
+            summary = run_detector(workdir, combo, tmp / "det", split, threads, where)
         if skipped:
             continue
         runs[label] = {"ap": car_ap40(summary["metrics"]), "speed": summary["speed"]}
+        result_dirs[label] = Path(summary["result_dir"])
         print(f"  model {summary['speed'].get('model_ms_median', float('nan')):.1f} ms/frame")
     ref = runs["jax f32"]["ap"]
     print(f"\n{'Car AP|R40 entry':28s}" + "".join(f"{k:>18s}" for k in runs))
@@ -172,7 +174,36 @@ def guard_detector(workdir: str, split, threads, tmp: Path, combos: list[Combo])
         verdicts[label] = {"max_abs_diff": worst, "within_tolerance": worst <= AP_TOLERANCE}
         ok = "within" if worst <= AP_TOLERANCE else "NOT within"
         print(f"{label:18s} largest |diff| {worst:.2f} AP: {ok} {AP_TOLERANCE} AP of jax f32")
-    return {"runs": runs, "verdicts": verdicts}
+    out = {"runs": runs, "verdicts": verdicts}
+    if k >= 2:
+        out["folds"] = detector_folds(result_dirs, k)
+    return out
+
+
+def detector_folds(result_dirs: dict[str, Path], k: int) -> dict:
+    """:func:`guard_folds.fold_differences` of every combo against jax f32 (the frames and
+    labels of the evaluation, from the result folder's ``run.json``)."""
+    from gac_jax.data.kitti import KittiObjectLayout, read_split
+
+    ref = result_dirs["jax f32"]
+    settings = json.loads((ref.parent / "run.json").read_text())
+    layout = KittiObjectLayout(settings["data_root"])
+    ids = read_split(layout.split_file(settings["split"]))
+    others = {label: d for label, d in result_dirs.items() if label != "jax f32"}
+    res = fold_differences(layout.root / "training" / "label_2", ref, others, ids, k, AP_TOLERANCE)
+    print(
+        f"\n{k} disjoint folds of {min(res['fold_frames'])}-{max(res['fold_frames'])} of the "
+        f"{res['frames']} frames; verdict at 2 standard errors of the all-frames difference:"
+    )
+    print(f"{'runtime':28s} {'verdict':>10s}  deciding entry: diff, fold std, se; largest fold std")
+    for label, r in res["runs"].items():
+        e = r["entries"][r["worst_entry"]]
+        spread = max(v["fold_std"] for v in r["entries"].values())
+        print(
+            f"{label:28s} {r['verdict']:>10s}  {r['worst_entry']}: {e['diff']:+.2f}, "
+            f"{e['fold_std']:.2f}, {e['se']:.2f}; {spread:.2f}"
+        )
+    return res
 
 
 def guard_depth(workdir: str, split, tmp: Path, combos: list[Combo]) -> dict:
@@ -290,7 +321,28 @@ def main() -> None:
         help="an int8 row with these layers kept in float32 (repeatable)",
     )
     parser.add_argument("--int8-frames", type=int, default=DEFAULT_FRAMES)
+    parser.add_argument(
+        "--int8-seeds",
+        type=lambda t: [int(x) for x in t.split(",")],
+        default=[0],
+        metavar="S[,S]",
+        help="an int8 row per calibration seed (the frames drawn; default 0)",
+    )
     parser.add_argument("--split", help="default: each run's val split")
+    parser.add_argument(
+        "--guard-data",
+        metavar="DIR",
+        help="detector: evaluate on this KITTI-format root (e.g. a larger generated set, "
+        "python -m gac_jax.data.synthetic --out DIR ...) instead of the run's own data; int8 "
+        "is then calibrated on DIR's train split",
+    )
+    parser.add_argument(
+        "--folds",
+        type=int,
+        default=5,
+        help="detector: disjoint frame folds for the fold spread and the ~95%% verdict "
+        "(benchmarks/guard_folds.py; default 5, 0 = off)",
+    )
     parser.add_argument("--threads", type=int)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -302,7 +354,13 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_runtime_accuracy_") as tmp:
         if args.detect3d_workdir:
             out["detect3d"] = guard_detector(
-                args.detect3d_workdir, args.split, args.threads, Path(tmp), combos
+                args.detect3d_workdir,
+                args.split,
+                args.threads,
+                Path(tmp),
+                combos,
+                args.guard_data,
+                args.folds,
             )
         if args.depth_workdir:
             out["depth"] = guard_depth(args.depth_workdir, args.split, Path(tmp), combos)
