@@ -219,3 +219,28 @@ def test_the_plane_reaches_the_network_in_training_and_evaluation(dataset, varia
     assert result["num_frames"] == len(source) > 0 and len(seen) == len(source)
     for i, frame in enumerate(source.frames):
         assert seen[(frame.frame_id, frame.camera)] == pytest.approx(want(source, i)[3], rel=1e-5)
+
+
+def test_ground_plane_baseline_uses_the_planes_unless_the_workdir_fixes_it(dataset, tmp_path):
+    """``evaluate.py --task depth --baseline ground-plane --workdir W``: the ground depth of each
+    frame's plane for a ``:multirig`` workdir, of the level 1.65 m plane for ``:fixedplane``."""
+    from gac_jax.cli.evaluate_depth import evaluate_baseline
+    from gac_jax.config import save_config
+    from gac_jax.data.files import read_depth_png
+    from gac_jax.evaluation.depth_evaluator import prediction_relpath
+
+    source = KittiDepthSource(dataset / "depth", "val_heldout", (2,))
+    for variants, kept in ((("multirig",), True), (("multirig", "fixedplane"), False)):
+        workdir = tmp_path / "_".join(variants)
+        config = depth_config(dataset, *variants)
+        save_config(config, workdir)
+        out = tmp_path / f"out_{kept}"
+        evaluate_baseline("ground-plane", workdir=workdir, split="val_heldout", out=out)
+        for i, frame in enumerate(source.frames):
+            sample = source[i]
+            plane = sample["plane"] if kept else geometry.level_plane(1.65)
+            got = read_depth_png(out / prediction_relpath(frame.frame_id, frame.camera))
+            h, w = got.shape
+            vs, us = np.mgrid[h - 20 : h, 0:w]
+            want = geometry.ground_depth(vs, sample["P2"], u=us, plane=plane)
+            np.testing.assert_allclose(got[vs, us], want, rtol=2e-3, atol=3 / 256)
