@@ -29,6 +29,7 @@ from gac_jax.data.loader import DepthArrays
 from gac_jax.data.sources import KittiDepthSource, TfdsDepthSource
 from gac_jax.data.synthetic.frame import frame_rig
 from gac_jax.data.synthetic.writer import drive_name, generate_dataset
+from gac_jax.deploy.runtimes import RuntimeDepthPredictor
 from gac_jax.evaluation.depth_evaluator import NetworkPredictor
 from gac_jax.trainers import depth as depth_trainer
 from gac_jax.training import parallel
@@ -175,9 +176,11 @@ def test_an_older_multi_rig_dataset_gets_its_depth_planes_by_linking(dataset, tm
     "variants, kept", [(("multirig",), True), (("multirig", "fixedplane"), False)]
 )
 def test_the_plane_reaches_the_network_in_training_and_evaluation(dataset, variants, kept):
-    """Train batches and the evaluator's predictor calls (``evaluate.py --task depth --workdir``
-    and the trainer's evaluation go through ``make_evaluator`` + ``NetworkPredictor``) carry
-    each frame's plane, or the level plane of ``model.gac.camera_height`` for ``:fixedplane``."""
+    """Train batches and the evaluator's network calls carry each frame's plane, or the level
+    plane of ``model.gac.camera_height`` for ``:fixedplane``: ``evaluate.py --task depth
+    --workdir`` and the trainer's evaluation go through ``make_evaluator`` and
+    ``NetworkPredictor`` (JAX) or ``RuntimeDepthPredictor`` (the exported ONNX network, whose
+    ``plane`` input this feeds)."""
     c = depth_config(dataset, *variants)
     assert c.data.use_planes is kept
     level = geometry.level_plane(c.model.gac.camera_height)
@@ -204,21 +207,30 @@ def test_the_plane_reaches_the_network_in_training_and_evaluation(dataset, varia
             log_d = jnp.log(plane[:, 3])[:, None, None]
             return {"log_depth": {"scale_1": log_d * jnp.ones(images.shape[:3])}}
 
+    def exported(images, P2, plane):  # the ONNX network's call (RuntimeDepthPredictor)
+        del P2
+        return {"log_depth": np.log(plane[:, 3])[:, None, None] * np.ones(images.shape[:3])}
+
     source = depth_builders.eval_source(c, dataset / "depth", "val")
     evaluator = depth_builders.make_evaluator(c, source)
-    predictor = NetworkPredictor(PlaneAsDepth(), {})
-    seen = {}
+    height = c.model.gac.camera_height
+    for predictor in (
+        NetworkPredictor(PlaneAsDepth(), {}),
+        RuntimeDepthPredictor(exported, height),
+    ):
+        seen = {}
 
-    def spy(batch):
-        maps = predictor(batch)
-        for key, camera, depth in zip(batch["frame_id"], batch["camera"], maps, strict=True):
-            seen[(str(key), int(camera))] = float(np.median(depth))
-        return maps
+        def spy(batch, predictor=predictor, seen=seen):
+            maps = predictor(batch)
+            for key, camera, depth in zip(batch["frame_id"], batch["camera"], maps, strict=True):
+                seen[(str(key), int(camera))] = float(np.median(depth))
+            return maps
 
-    result = evaluator.evaluate(spy)
-    assert result["num_frames"] == len(source) > 0 and len(seen) == len(source)
-    for i, frame in enumerate(source.frames):
-        assert seen[(frame.frame_id, frame.camera)] == pytest.approx(want(source, i)[3], rel=1e-5)
+        result = evaluator.evaluate(spy)
+        assert result["num_frames"] == len(source) > 0 and len(seen) == len(source)
+        for i, frame in enumerate(source.frames):
+            got = seen[(frame.frame_id, frame.camera)]
+            assert got == pytest.approx(want(source, i)[3], rel=1e-5)
 
 
 def test_ground_plane_baseline_uses_the_planes_unless_the_workdir_fixes_it(dataset, tmp_path):
