@@ -69,7 +69,7 @@ DETECTION = Task(
 DEPTH = Task(
     name="depth",
     rows=("base", "gac"),
-    variants={"base": "base", "gac": ""},
+    variants={"base": "base", "gac": "", "fixedplane": "fixedplane"},
     metrics={"SILog": ("silog",), "absRel %": ("abs_rel",), "iRMSE": ("irmse",)},
     higher_is_better=False,
     paper={
@@ -144,7 +144,10 @@ def read_run(task: Task, workdir: Path, seed: int, split: str | None = None) -> 
                 return RunResult(seed, "not evaluated", step=step, note=f"{split}: not yet")
             return RunResult(seed, "failed", step=step, note=f"{metrics_file} missing")
         metrics = json.loads(metrics_file.read_text())
-        metrics = metrics["metrics"] if split is None else metrics
+        # The trainer's results and evaluate.py --task depth --json keep the metrics under
+        # "metrics"; evaluate.py --task detect3d --json writes the metrics dict itself.
+        if split is None or task.name == "depth":
+            metrics = metrics["metrics"]
         values = {}
         for name, keys in task.metrics.items():
             value = _dig(metrics, keys)

@@ -88,8 +88,10 @@ contributes little loss anyway, so the main effect is the smaller normaliser (ab
 classification loss per anchor, as with the ground filter) and that the easiest half gives no
 gradient at all.
 
-Depth rows: `base` = `configs/depth_default.py:base` (the paper's "Base U-Net", no GAC) and
-`gac` = `configs/depth_default.py` (the GAC U-Net).
+Depth rows: `base` = `configs/depth_default.py:base` (the paper's "Base U-Net", no GAC),
+`gac` = `configs/depth_default.py` (the GAC U-Net) and `fixedplane` (the GAC U-Net with the
+frames' `planes/` files ignored: the level plane 1.65 m below the camera; only differs from
+`gac` on data that carries planes, e.g. `:multirig`).
 """
 
 

@@ -13,6 +13,10 @@
     python benchmarks/ablation_table.py --rows baseline,conv,fixedplane --seeds 0,1,2 \\
         --config configs/detect3d_default.py:multirig --eval-splits val_heldout \\
         --section multirig --out workdirs/ablations_multirig
+    # the same for depth: Base U-Net vs GAC U-Net with the frames' planes vs the fixed plane
+    python benchmarks/ablation_table.py --task depth --rows base,gac,fixedplane --seeds 0,1 \\
+        --config configs/depth_default.py:multirig --eval-splits val_heldout \\
+        --section multirig --out workdirs/ablations_multirig
 
 One workdir per (row, seed): ``OUT/<task>/<row>/seed_<s>``, trained by ``train.py --task T
 --config CONFIG:<variant> --workdir W seed=<s> [overrides]`` in a child process (its output
@@ -31,10 +35,10 @@ and lists unfinished seeds as such.
 Rows: detection ``baseline`` (the GAC model), ``nofilter``, ``ohem``, ``conv``, ``disparity``,
 ``deformable`` (variants of ``configs/detect3d_default.py``, see ``configs/detect3d_kitti.py``);
 depth ``base`` (``configs/depth_default.py:base``) and ``gac`` (the default); ``fixedplane``
-(not a paper row: the baseline with the frames' ``planes/`` ignored). ``--section NAME``
-writes the tables of this ``--out`` as a named block of the report that later calls for other
-``--out`` folders (and the paper's tables) keep. Exit status: 0
-when every requested run finished, 1 if one failed (the others still ran), 2 on bad arguments.
+(either task; not a paper row: the GAC model with the frames' plane files ignored).
+``--section NAME`` writes the tables of this ``--out`` as a named block of the report that
+later calls for other ``--out`` folders (and the paper's tables) keep. Exit status: 0 when
+every requested run finished, 1 if one failed (the others still ran), 2 on bad arguments.
 """
 
 from __future__ import annotations

@@ -16,7 +16,15 @@ row-mean baselines and the Base U-Net::
     python train.py --task depth --config configs/depth_default.py:base
 
 Variants: ``:tiny`` (tests, seconds), ``:base`` (no GAC, the "Base U-Net"), ``:multirig`` (the
-embedded dataset of eight camera rigs, two held out into split ``val_heldout``).
+embedded dataset of eight camera rigs, two held out into split ``val_heldout``; each frame's
+ground plane in ``depth/planes/``, given to the GAC), ``:fixedplane`` (ignore the frames'
+plane files: the GAC gets the level plane ``model.gac.camera_height`` = 1.65 m below the
+camera, as without files). The multi-rig ground-plane comparison::
+
+    python train.py --task depth --config configs/depth_default.py:multirig,base
+    python train.py --task depth --config configs/depth_default.py:multirig
+    python train.py --task depth --config configs/depth_default.py:multirig,fixedplane
+    python evaluate.py --task depth --workdir WORKDIR --split val_heldout
 """
 
 from __future__ import annotations
@@ -72,7 +80,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     if "multirig" in variants:  # eight camera rigs, two held out (split val_heldout)
         c.data.synthetic.rigs = "multi"
         c.data.synthetic.val_fraction = 0.2
-    unknown = variants - {"tiny", "base", "multirig"}
+    if "fixedplane" in variants:  # the level plane of model.gac.camera_height everywhere
+        c.data.use_planes = False
+    known = ("tiny", "base", "multirig", "fixedplane")
+    unknown = variants - set(known)
     if unknown:
-        raise ValueError(f"unknown variants {sorted(unknown)} (known: tiny, base, multirig)")
+        raise ValueError(f"unknown variants {sorted(unknown)} (known: {', '.join(known)})")
     return c

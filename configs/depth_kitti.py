@@ -58,6 +58,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.root = ""
     # The embedded dataset (data.source='synthetic'): the detector's cache, its ROOT/depth.
     c.data.synthetic = synthetic_config()  # used with data.source='synthetic'
+    # Each frame's planes/<drive>/<frame>.txt ground plane where it has one (KITTI-depth has
+    # none; the multi-rig embedded dataset has); False: always the level plane of
+    # model.gac.camera_height (the fixed-height arm of the ground-plane comparison)
+    c.data.use_planes = True
     c.data.train_split = "train"
     c.data.val_split = "val"
     c.data.val_selection = ""  # a depth_selection folder to evaluate on instead of val_split

@@ -284,6 +284,24 @@ def test_depth_report_lower_is_better(tmp_path):
     assert "`gac` absRel % -0.10 (better, within the seed spread)" in text
 
 
+def test_depth_extra_split_reads_evaluate_json(tmp_path):
+    """``evaluate.py --task depth --workdir W --split S --json`` keeps the metrics under
+    ``metrics`` (the multi-rig depth comparison's ``val_heldout`` table)."""
+    rep = _report_module()
+    out = tmp_path / "out"
+    for row, silog in (("gac", 13.0), ("fixedplane", 15.0)):
+        workdir = out / "depth" / row / "seed_0"
+        _fake_depth_run(workdir, silog, 8.0, 11.0)
+        held = {"metrics": {"silog": silog + 5, "abs_rel": 9.0, "irmse": 12.0}, "num_frames": 3}
+        (workdir / "ablation_eval").mkdir()
+        (workdir / "ablation_eval" / "val_heldout.json").write_text(json.dumps(held))
+    plan = {"config": "configs/depth_default.py:multirig", "overrides": [], "seeds": [0]}
+    plan |= {"rows": ["gac", "fixedplane"], "eval_splits": ["val_heldout"]}
+    (out / "plan.json").write_text(json.dumps({"depth": plan}))
+    held_part = rep.render(out).split("### On split `val_heldout`")[1]
+    assert "| `fixedplane` | 0 | done (step 4) | 20.00 | 9.00 | 12.00 |" in held_part
+
+
 def _write_eval(workdir: Path, split: str, values: dict):
     """What the runner leaves after ``evaluate.py --workdir W --split S --json``."""
     ap = {

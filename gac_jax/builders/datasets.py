@@ -8,6 +8,7 @@ from pathlib import Path
 import jax
 import ml_collections
 
+from gac_jax.data import transforms
 from gac_jax.data.files import KittiFormatError
 
 
@@ -78,3 +79,10 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
 
     multiprocess.barrier("dataset_ready")  # the others wait (with a timeout) for process 0
     return root
+
+
+def plane_ops(data: ml_collections.ConfigDict) -> list:
+    """``[DropGroundPlane()]`` when the config ignores the frames' plane files
+    (``data.use_planes = False``, variant ``fixedplane``; absent in older workdirs: used),
+    else ``[]``: the first transforms of both tasks' train and eval chains."""
+    return [] if data.get("use_planes", True) else [transforms.DropGroundPlane()]

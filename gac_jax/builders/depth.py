@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import ml_collections
 
-from gac_jax.builders.datasets import prepare_dataset
+from gac_jax.builders.datasets import plane_ops, prepare_dataset
 from gac_jax.data import transforms
 from gac_jax.data.kitti_depth import list_selection
 from gac_jax.data.sources import KittiDepthSelectionSource, open_depth_source
@@ -28,7 +28,8 @@ def depth_root(data: ml_collections.ConfigDict) -> Path:
 
 
 def _view_ops(d: ml_collections.ConfigDict) -> list:
-    ops: list = [transforms.CropBottomTo(d.crop_height)]
+    """Forget the frame's plane (``data.use_planes = False``), bottom rows, resize."""
+    ops: list = plane_ops(d) + [transforms.CropBottomTo(d.crop_height)]
     if d.height != d.crop_height:
         ops.append(transforms.Resize(d.height))
     return ops
@@ -46,7 +47,8 @@ def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
 
 
 def eval_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
-    """Deterministic: bottom rows, resize, the left ``eval_width`` columns, normalise."""
+    """Deterministic: bottom rows, resize, the left ``eval_width`` columns, normalise (and
+    forget the frames' ground planes with ``data.use_planes = False``)."""
     d = config.data
     return transforms.Compose(
         _view_ops(d) + [transforms.CropOrPadWidth(d.eval_width), transforms.Normalize()]

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
+from gac_jax.builders.datasets import plane_ops
 from gac_jax.data import transforms
 from gac_jax.data.loader import Loader
 from gac_jax.data.sources import open_object_source
@@ -36,16 +37,11 @@ def anchor_layout(config: ml_collections.ConfigDict) -> AnchorLayout:
     )
 
 
-def _plane_ops(data: ml_collections.ConfigDict) -> list:
-    """``[DropGroundPlane()]`` when the config ignores the frames' ``planes/`` files."""
-    return [] if data.get("use_planes", True) else [transforms.DropGroundPlane()]
-
-
 def eval_transform(config: ml_collections.ConfigDict, normalize: bool = True) -> transforms.Compose:
     """Deterministic chain: crop top, resize to the input height, crop/pad the width (and
     forget the frames' ground planes with ``data.use_planes = False``)."""
     d = config.data
-    ops = _plane_ops(d) + [
+    ops = plane_ops(d) + [
         transforms.CropTop(d.crop_top),
         transforms.Resize(d.height),
         transforms.CropOrPadWidth(d.width),
@@ -57,7 +53,7 @@ def eval_transform(config: ml_collections.ConfigDict, normalize: bool = True) ->
 
 def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
     d = config.data
-    ops = _plane_ops(d) + [
+    ops = plane_ops(d) + [
         transforms.FilterObjects(
             tuple(d.classes), max_occlusion=d.max_occlusion, min_depth=d.min_depth
         )

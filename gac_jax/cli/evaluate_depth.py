@@ -10,9 +10,11 @@
 written, nothing is scored). Without it, the workdir's own evaluation data is used. The
 model mode writes 16-bit PNGs, pictures and ``metrics.json`` to ``--out`` (default
 ``W/eval/step_N_<split>``); the baseline writes PNGs only when ``--out`` is given.
-Baselines: ``ground-plane`` (the per-row ground depth of a camera 1.65 m above a flat
-road) and ``row-mean`` (each row's mean log-depth over the ``train`` split of the same
-data, :mod:`gac_jax.evaluation.depth_baselines`).
+Baselines: ``ground-plane`` (the ground depth of each frame's plane, its
+``planes/<drive>/<frame>.txt`` file, else a camera 1.65 m above a flat road; with a workdir
+whose config has ``data.use_planes = False`` always the latter) and ``row-mean`` (each row's
+mean log-depth over the ``train`` split of the same data,
+:mod:`gac_jax.evaluation.depth_baselines`).
 """
 
 from __future__ import annotations
@@ -114,7 +116,10 @@ def evaluate_baseline(
     config = load_workdir_config(workdir) if workdir is not None else None
     source = _data_source(config, data, split)
     # The baseline reads only P2 and the geometry: a small fixed view keeps batches cheap.
-    view = transforms.Compose([transforms.Resize(32, 128)])
+    from gac_jax.builders.datasets import plane_ops
+
+    planes = plane_ops(config.data) if config is not None else []
+    view = transforms.Compose([*planes, transforms.Resize(32, 128)])
     evaluator = DepthEvaluator(source, view, batch_size=8, num_pictures=0)
     if name == "ground-plane":
         predictor = GroundPlanePredictor(BASELINE_CAMERA_HEIGHT, BASELINE_MAX_DEPTH)

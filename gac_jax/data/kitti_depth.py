@@ -5,10 +5,19 @@ Layout of a KITTI-depth root (real or generated)::
     ROOT/data_depth_annotated/{train,val}/<drive>/proj_depth/groundtruth/image_0{2,3}/NNNNNNNNNN.png
     ROOT/raw/<date>/<drive>/image_0{2,3}/data/NNNNNNNNNN.png
     ROOT/raw/<date>/calib_cam_to_cam.txt
+    ROOT/planes/<drive>/NNNNNNNNNN.txt                  (optional: the frame's ground plane)
 
 ``<drive>`` is e.g. ``2011_09_26_drive_0001_sync`` and ``<date>`` its first 10
 characters. Ground-truth PNGs hold depth in metres x 256 (0 = invalid) on the
 rectified image grid of the same camera.
+
+Ground planes are not part of KITTI-depth; the generated multi-rig dataset writes them, and
+a user may add their own. A plane file has the KITTI object ``planes/`` format (AVOD,
+:func:`gac_jax.data.kitti.parse_plane`): ``a x + b y + c z + d = 0`` in the rectified
+camera-0 frame (x right, y down, z forward, metres), the frame that every ``P_rect_0X``
+projects from. One file per frame therefore serves both cameras, as KITTI object planes serve
+``P2`` and ``P3``; it sits beside ``data_depth_annotated/``, not in a split, because drive
+names are unique across splits.
 
 The devkit's ``depth_selection/val_selection_cropped`` set is flat::
 
@@ -169,6 +178,10 @@ class KittiDepthLayout:
 
     def calib(self, drive: str) -> Path:
         return self.root / "raw" / drive_date(drive) / "calib_cam_to_cam.txt"
+
+    def plane(self, frame: DepthFrame) -> Path:
+        """The frame's (optional) ground-plane file; the same for both cameras."""
+        return self.root / "planes" / frame.drive / f"{frame.frame}.txt"
 
     def frames(self, split: str, cameras: tuple[int, ...] = CAMERAS) -> list[DepthFrame]:
         """Every (drive, frame, camera) with a ground-truth PNG and a raw image, camera-major.

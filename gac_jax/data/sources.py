@@ -10,9 +10,11 @@ Sample keys (see the project brief): ``frame_id``, ``camera``, ``image`` (H, W, 
 uint8 RGB, ``P2`` (3, 4) float64 projection of this image, ``image_transform``
 (identity), ``original_size`` (H, W), and ``objects`` (object sources with
 labels) or ``depth`` (H, W) float32 metres, 0 = invalid (depth sources); ``plane`` (4,)
-float64 ground plane in the rectified camera frame when the frame has a
-``planes/NNNNNN.txt`` file (:func:`gac_jax.data.kitti.parse_plane`; absent otherwise, and
-the loader then uses the config's level plane).
+float64 ground plane when the frame has a plane file (:func:`gac_jax.data.kitti.parse_plane`;
+absent otherwise, and the loader then uses the config's level plane): object frames'
+``planes/NNNNNN.txt``, KITTI-depth frames' ``planes/<drive>/NNNNNNNNNN.txt``
+(:mod:`gac_jax.data.kitti_depth`). The plane is in the rectified reference (camera 0) frame,
+the frame the sample's ``P2`` projects from, for either camera: the file as it is.
 """
 
 from __future__ import annotations
@@ -111,10 +113,14 @@ def depth_sample_from_bytes(
     P: np.ndarray,
     depth: bytes | None,
     where: dict[str, str | os.PathLike],
+    plane: str | None = None,
 ) -> dict:
-    """Decodes one depth frame; the depth PNG must have the image's size."""
+    """Decodes one depth frame; the depth PNG must have the image's size. ``plane`` is the
+    text of the frame's plane file, if it has one (``where['plane']`` names it)."""
     img = decode_image(image, where["image"])
     extra = {}
+    if plane is not None:
+        extra["plane"] = parse_plane(plane, where["plane"])
     if depth is not None:
         d = decode_depth_png(depth, where["depth"])
         if d.shape != img.shape[:2]:
@@ -232,7 +238,8 @@ class KittiDepthSource:
         selecting frames of ``split`` in file order; a listed frame without GT
         or raw image is a KittiFormatError naming the list file and line.
 
-    ``frame_id`` is ``'<drive>/<frame>'``.
+    ``frame_id`` is ``'<drive>/<frame>'``. A frame with a ``planes/<drive>/<frame>.txt`` file
+    gets its ``plane`` (the same for both cameras, see the module docstring).
     """
 
     def __init__(
@@ -281,7 +288,11 @@ class KittiDepthSource:
         where = {
             "image": self.layout.raw_image(frame),
             "depth": self.layout.groundtruth(self.split, frame),
+            "plane": self.layout.plane(frame),
         }
+        plane = None
+        if where["plane"].is_file():
+            plane = read_bytes(where["plane"], "plane file").decode("utf-8", "replace")
         return depth_sample_from_bytes(
             frame.frame_id,
             frame.camera,
@@ -289,6 +300,7 @@ class KittiDepthSource:
             self._projection(frame),
             read_bytes(where["depth"], "depth PNG"),
             where,
+            plane,
         )
 
 
@@ -417,7 +429,8 @@ class TfdsObjectSource:
 
 
 class TfdsDepthSource:
-    """:class:`KittiDepthSource` over a prepared ``gac_kitti_depth`` dataset (camera-major)."""
+    """:class:`KittiDepthSource` over a prepared ``gac_kitti_depth`` dataset (camera-major;
+    ``plane`` from version 1.1.0 on)."""
 
     def __init__(
         self, prepared: str | os.PathLike, split: str = "train", cameras: tuple[int, ...] = (2, 3)
@@ -446,8 +459,11 @@ class TfdsDepthSource:
         base = f"{self.path}[{depth_split_name(self.split, camera)}]/{frame_id}"
         calib = kitti_depth.parse_cam_to_cam(_text(rec["calib"]), f"{base}/calib_cam_to_cam")
         P = kitti_depth.projection_for_camera(calib, camera, f"{base}/calib_cam_to_cam")
-        where = {"image": f"{base}/image", "depth": f"{base}/depth"}
-        return depth_sample_from_bytes(frame_id, camera, rec["image"], P, rec["depth"], where)
+        where = {"image": f"{base}/image", "depth": f"{base}/depth", "plane": f"{base}/plane"}
+        plane = _text(rec["plane"]) if "plane" in rec else ""  # datasets before 1.1.0 have none
+        return depth_sample_from_bytes(
+            frame_id, camera, rec["image"], P, rec["depth"], where, plane or None
+        )
 
 
 def depth_split_name(split: str, camera: int) -> str:

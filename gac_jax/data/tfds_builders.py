@@ -16,7 +16,9 @@ which needs neither TensorFlow nor this module.
 * ``gac_kitti_depth``: one split per (folder under ``data_depth_annotated``,
   camera), named ``<split>_image_0<camera>``, frames sorted by (drive, frame).
   Features: ``frame_id`` (``<drive>/<frame>``), ``camera``, ``image``, ``depth``
-  (16-bit PNG bytes), ``calib`` (the day's ``calib_cam_to_cam.txt``).
+  (16-bit PNG bytes), ``calib`` (the day's ``calib_cam_to_cam.txt``), ``plane`` (the
+  ``planes/<drive>/<frame>.txt`` file's text, empty when absent; version 1.1.0, older
+  datasets have none).
 
 Command line::
 
@@ -156,8 +158,11 @@ class GacKittiObject(tfds.core.GeneratorBasedBuilder):
 class GacKittiDepth(tfds.core.GeneratorBasedBuilder):
     """Annotated KITTI-depth frames as raw bytes (see module docstring)."""
 
-    VERSION = tfds.core.Version("1.0.0")
-    RELEASE_NOTES = {"1.0.0": "Raw image/depth PNG bytes and calib text per (frame, camera)."}
+    VERSION = tfds.core.Version("1.1.0")
+    RELEASE_NOTES = {
+        "1.0.0": "Raw image/depth PNG bytes and calib text per (frame, camera).",
+        "1.1.0": "Plus the planes/<drive>/<frame>.txt file text (empty when absent).",
+    }
 
     def __init__(
         self,
@@ -183,6 +188,7 @@ class GacKittiDepth(tfds.core.GeneratorBasedBuilder):
                     "image": _bytes_feature(),
                     "depth": _bytes_feature(),
                     "calib": tfds.features.Text(),
+                    "plane": tfds.features.Text(),
                 }
             ),
             disable_shuffling=True,
@@ -223,6 +229,10 @@ class GacKittiDepth(tfds.core.GeneratorBasedBuilder):
                     kitti_depth.parse_cam_to_cam(text, calib_path), camera, calib_path
                 )
                 calibs[frame.drive] = text
+            plane_path, plane = lay.plane(frame), ""
+            if plane_path.is_file():
+                plane = read_bytes(plane_path, "plane file").decode("utf-8", "replace")
+                parse_plane(plane, plane_path)
             yield (
                 key,
                 {
@@ -231,6 +241,7 @@ class GacKittiDepth(tfds.core.GeneratorBasedBuilder):
                     "image": _png(lay.raw_image(frame), "image"),
                     "depth": _png(lay.groundtruth(split, frame), "depth PNG"),
                     "calib": calibs[frame.drive],
+                    "plane": plane,
                 },
             )
 

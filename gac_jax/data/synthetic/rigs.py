@@ -8,7 +8,8 @@ jitter on top, so -6..+7 in all), focal lengths 600-860 px, principal points and
 sizes of their own. Two of them are held out: their frames are never in ``train`` and form
 the ``val_heldout`` split. With one camera height and no pitch a network can learn the
 row -> depth map from the pixels alone; with several it needs the ground plane, which
-``"multi"`` frames carry in ``training/planes/NNNNNN.txt``.
+``"multi"`` frames carry in ``training/planes/NNNNNN.txt`` and, for the KITTI-depth layout
+of the same frames, ``depth/planes/<drive>/NNNNNNNNNN.txt`` (the same file).
 
 The ground plane of a frame is ``a x + b y + c z + d = 0`` in the rectified reference
 camera frame (x right, y down, z forward, metres), normal pointing up (``b < 0``) and
