@@ -10,8 +10,15 @@ last row. Blocks whose own quantization moves the metric beyond the rule are the
 keep in float32 (``evaluate.py ... --precision int8 --int8-keep-float PREFIX``); check the
 combination with ``bench_runtime_accuracy.py --keep-float PREFIX[,PREFIX]``.
 
+On a run's 300 val frames one entry's change moves by ~0.4-0.8 AP between disjoint 300-frame
+sets for any int8/bf16 perturbation (``guard_folds.py``), so a single-block row there is mostly
+noise; ``--guard-data DIR --split S`` (a larger generated dataset, e.g. 1,500 frames) and
+``--bootstrap N`` add each row's paired-bootstrap verdict (within / beyond / undecided at
+~95 %, ``guard_folds.py``).
+
     python benchmarks/bench_int8_sensitivity.py (--detect3d-workdir W | --depth-workdir W)
-        [--int8-frames N] [--split S] [--threads N] [--json OUT]
+        [--int8-frames N] [--int8-seed S] [--split S] [--guard-data DIR] [--bootstrap N]
+        [--results-dir DIR] [--threads N] [--json OUT]
 """
 
 from __future__ import annotations
@@ -71,7 +78,15 @@ def main() -> None:
     parser.add_argument("--detect3d-workdir")
     parser.add_argument("--depth-workdir")
     parser.add_argument("--int8-frames", type=int, default=DEFAULT_FRAMES)
+    parser.add_argument("--int8-seed", type=int, default=0)
     parser.add_argument("--split")
+    parser.add_argument(
+        "--guard-data", help="detector: evaluate on this KITTI-format dataset's --split"
+    )
+    parser.add_argument(
+        "--bootstrap", type=int, default=0, help="detector: bootstrap resamples (0 = off)"
+    )
+    parser.add_argument("--results-dir", type=Path, help="keep exports and results here")
     parser.add_argument("--threads", type=int)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -81,10 +96,22 @@ def main() -> None:
     task = "detect3d" if args.detect3d_workdir else "depth"
     with tempfile.TemporaryDirectory(prefix="bench_int8_sensitivity_") as tmp:
         tmp = Path(tmp)
+        if args.results_dir:
+            args.results_dir.mkdir(parents=True, exist_ok=True)
+            tmp = args.results_dir
 
-        def guard(combos):
+        def guard(combos, boots=0):
             if task == "detect3d":
-                return guard_detector(args.detect3d_workdir, args.split, args.threads, tmp, combos)
+                return guard_detector(
+                    args.detect3d_workdir,
+                    args.split,
+                    args.threads,
+                    tmp,
+                    combos,
+                    args.guard_data,
+                    0,
+                    boots,
+                )
             return guard_depth(args.depth_workdir, args.split, tmp, combos)
 
         first = guard([Combo("jax", "f32"), Combo("openvino", "f32")])  # writes the export
@@ -92,21 +119,33 @@ def main() -> None:
         blocks = conv_blocks(export / "model.onnx")
         print(f"\nblocks: {blocks}", flush=True)
         combos = [Combo("jax", "f32")]
-        for block in blocks:
-            keep = tuple(re.escape(b) for b in blocks if b != block)
-            combos.append(Combo("openvino", "int8", Int8Settings(args.int8_frames, 0, keep)))
-        combos.append(Combo("openvino", "int8", Int8Settings(args.int8_frames, 0, ())))
-        result = guard(combos)
+        for block in [*blocks, None]:  # None: every block in int8
+            keep = tuple(re.escape(b) for b in blocks if b != block) if block else ()
+            combos.append(
+                Combo("openvino", "int8", Int8Settings(args.int8_frames, args.int8_seed, keep))
+            )
+        result = guard(combos, args.bootstrap)
     labels = list(result["verdicts"])[1:]  # jax f32 first
+    folded = result.get("bootstrap", {}).get("runs", {})
     rows = []
-    print(f"\n{'int8 block (rest float32)':28s} {'convs':>5s} {'largest change':>15s}  verdict")
+    print(
+        f"\n{'int8 block (rest float32)':28s} {'convs':>5s} {'largest change':>15s}  verdict"
+        + ("  bootstrap verdict: deciding entry (diff, se)" if folded else "")
+    )
     for block, label in zip([*blocks, "(all: full int8)"], labels, strict=True):
         v = result["verdicts"][label]
         worst = v["max_abs_diff"] if task == "detect3d" else abs(v["silog_diff"])
         tolerance = AP_TOLERANCE if task == "detect3d" else SILOG_TOLERANCE
-        rows.append({"block": block, "convs": blocks.get(block), "largest_change": worst})
+        row = {"block": block, "convs": blocks.get(block), "largest_change": worst}
         ok = "within" if worst <= tolerance else "NOT within"
-        print(f"{block:28s} {blocks.get(block, sum(blocks.values())):5d} {worst:15.2f}  {ok}")
+        line = f"{block:28s} {blocks.get(block, sum(blocks.values())):5d} {worst:15.2f}  {ok}"
+        if label in folded:
+            f = folded[label]
+            e = f["entries"][f["worst_entry"]]
+            row.update(bootstrap_verdict=f["verdict"], deciding_entry=f["worst_entry"])
+            line += f"  {f['verdict']}: {f['worst_entry']} ({e['diff']:+.2f}, {e['se']:.2f})"
+        rows.append(row)
+        print(line)
     if args.json:
         args.json.write_text(json.dumps({"first": first, "runs": result, "rows": rows}, indent=2))
 

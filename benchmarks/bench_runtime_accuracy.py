@@ -20,7 +20,13 @@ converted authors' model on real frames).
     python benchmarks/bench_runtime_accuracy.py [--detect3d-workdir W] [--depth-workdir W]
         [--matched-workdir W [--checkpoint C --config F] [--data D] [--matched-split S]]
         [--combos jax:f32,openvino:int8,...] [--keep-float REGEX[,REGEX]] [--int8-frames N]
-        [--split S] [--threads N] [--json OUT]
+        [--split S] [--guard-data DIR] [--folds K] [--bootstrap N] [--results-dir DIR]
+        [--threads N] [--json OUT]
+
+A detector guard's difference is only as good as its frame count: ``--bootstrap N`` (default
+200) gives every entry's paired-frame-bootstrap standard error and decides the ~95 % verdict
+(within / beyond / undecided; ``guard_folds.py``); ``--folds K`` adds the spread a guard of
+``1/K`` of the frames would see. ``--guard-data DIR`` evaluates on a larger generated set.
 """
 
 from __future__ import annotations
@@ -40,7 +46,11 @@ from gac_jax.cpu_backend import apply_default_xla_flags  # noqa: E402
 
 apply_default_xla_flags()
 
-from guard_folds import car_ap40, fold_differences  # noqa: E402  (benchmarks/ on sys.path)
+from guard_folds import (  # noqa: E402  (benchmarks/ on sys.path)
+    bootstrap_differences,
+    car_ap40,
+    fold_differences,
+)
 from machine_info import describe_machine, one_line  # noqa: E402
 
 from gac_jax.data.files import KittiFormatError  # noqa: E402
@@ -145,10 +155,18 @@ def run_detector(workdir, combo: Combo, tmp: Path, split, threads, where=None) -
 
 
 def guard_detector(
-    workdir: str, split, threads, tmp: Path, combos: list[Combo], data=None, k: int = 0
+    workdir: str,
+    split,
+    threads,
+    tmp: Path,
+    combos: list[Combo],
+    data=None,
+    k: int = 0,
+    boots: int = 0,
 ) -> dict:
     """Every combo on the run's val split (or ``data``'s ``split``); ``k`` >= 2 folds add
-    each entry's fold spread and the ~95 % verdict of :mod:`guard_folds`."""
+    each entry's fold spread, ``boots`` >= 2 bootstrap resamples its standard error, each
+    with the ~95 % verdict of :mod:`guard_folds`."""
     runs, result_dirs = {}, {}
     where = {"data_root": data} if data else None
     for combo in combos:
@@ -175,35 +193,55 @@ def guard_detector(
         ok = "within" if worst <= AP_TOLERANCE else "NOT within"
         print(f"{label:18s} largest |diff| {worst:.2f} AP: {ok} {AP_TOLERANCE} AP of jax f32")
     out = {"runs": runs, "verdicts": verdicts}
-    if k >= 2:
-        out["folds"] = detector_folds(result_dirs, k)
+    if len(result_dirs) > 1 and (k >= 2 or boots >= 2):
+        out.update(detector_spread(result_dirs, k, boots))
     return out
 
 
-def detector_folds(result_dirs: dict[str, Path], k: int) -> dict:
-    """:func:`guard_folds.fold_differences` of every combo against jax f32 (the frames and
-    labels of the evaluation, from the result folder's ``run.json``)."""
+def detector_spread(result_dirs: dict[str, Path], k: int, boots: int) -> dict:
+    """:func:`guard_folds.fold_differences` (``k`` >= 2) and
+    :func:`guard_folds.bootstrap_differences` (``boots`` >= 2) of every combo against jax f32
+    (the frames and labels of the evaluation, from the result folder's ``run.json``)."""
     from gac_jax.data.kitti import KittiObjectLayout, read_split
 
     ref = result_dirs["jax f32"]
     settings = json.loads((ref.parent / "run.json").read_text())
     layout = KittiObjectLayout(settings["data_root"])
     ids = read_split(layout.split_file(settings["split"]))
+    labels = layout.root / "training" / "label_2"
     others = {label: d for label, d in result_dirs.items() if label != "jax f32"}
-    res = fold_differences(layout.root / "training" / "label_2", ref, others, ids, k, AP_TOLERANCE)
-    print(
-        f"\n{k} disjoint folds of {min(res['fold_frames'])}-{max(res['fold_frames'])} of the "
-        f"{res['frames']} frames; verdict at 2 standard errors of the all-frames difference:"
-    )
-    print(f"{'runtime':28s} {'verdict':>10s}  deciding entry: diff, fold std, se; largest fold std")
-    for label, r in res["runs"].items():
-        e = r["entries"][r["worst_entry"]]
-        spread = max(v["fold_std"] for v in r["entries"].values())
+    out = {}
+    if k >= 2:
+        res = out["folds"] = fold_differences(labels, ref, others, ids, k, AP_TOLERANCE)
         print(
-            f"{label:28s} {r['verdict']:>10s}  {r['worst_entry']}: {e['diff']:+.2f}, "
-            f"{e['fold_std']:.2f}, {e['se']:.2f}; {spread:.2f}"
+            f"\n{k} disjoint folds of {min(res['fold_frames'])}-{max(res['fold_frames'])} of "
+            f"the {res['frames']} frames (fold std: what a guard of one fold sees):"
         )
-    return res
+        print(f"{'runtime':28s} {'verdict':>10s}  deciding entry: diff, fold std, se; largest std")
+        for label, r in res["runs"].items():
+            e = r["entries"][r["worst_entry"]]
+            spread = max(v["fold_std"] for v in r["entries"].values())
+            print(
+                f"{label:28s} {r['verdict']:>10s}  {r['worst_entry']}: {e['diff']:+.2f}, "
+                f"{e['fold_std']:.2f}, {e['se']:.2f}; {spread:.2f}"
+            )
+    if boots >= 2:
+        res = out["bootstrap"] = bootstrap_differences(
+            labels, ref, others, ids, boots, AP_TOLERANCE
+        )
+        print(
+            f"\npaired frame bootstrap, {boots} resamples of the {res['frames']} frames; "
+            f"verdict at 2 standard errors (rule: every entry within {AP_TOLERANCE} AP):"
+        )
+        print(f"{'runtime':28s} {'verdict':>10s}  deciding entry: diff, se, 95 % interval")
+        for label, r in res["runs"].items():
+            e = r["entries"][r["worst_entry"]]
+            lo, hi = e["ci95"]
+            print(
+                f"{label:28s} {r['verdict']:>10s}  {r['worst_entry']}: {e['diff']:+.2f}, "
+                f"{e['se']:.2f}, [{lo:+.2f}, {hi:+.2f}]"
+            )
+    return out
 
 
 def guard_depth(workdir: str, split, tmp: Path, combos: list[Combo]) -> dict:
@@ -343,6 +381,19 @@ def main() -> None:
         help="detector: disjoint frame folds for the fold spread and the ~95%% verdict "
         "(benchmarks/guard_folds.py; default 5, 0 = off)",
     )
+    parser.add_argument(
+        "--bootstrap",
+        type=int,
+        default=200,
+        metavar="N",
+        help="detector: paired frame bootstrap resamples for the standard error that decides "
+        "the ~95%% verdict (default 200, 0 = off)",
+    )
+    parser.add_argument(
+        "--results-dir",
+        type=Path,
+        help="keep the exports and result folders here (default: a temporary folder)",
+    )
     parser.add_argument("--threads", type=int)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -352,6 +403,9 @@ def main() -> None:
     combos = available(args)
     out = {}
     with tempfile.TemporaryDirectory(prefix="bench_runtime_accuracy_") as tmp:
+        if args.results_dir:
+            args.results_dir.mkdir(parents=True, exist_ok=True)
+            tmp = args.results_dir
         if args.detect3d_workdir:
             out["detect3d"] = guard_detector(
                 args.detect3d_workdir,
@@ -361,6 +415,7 @@ def main() -> None:
                 combos,
                 args.guard_data,
                 args.folds,
+                args.bootstrap,
             )
         if args.depth_workdir:
             out["depth"] = guard_depth(args.depth_workdir, args.split, Path(tmp), combos)

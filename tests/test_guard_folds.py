@@ -89,3 +89,42 @@ def test_verdict_boundaries(guard_folds):
     assert v(entries((0.1, 0.1), (0.3, 0.15)), 0.5)["verdict"] == "undecided"  # 0.3 + 0.3
     assert v(entries((0.9, 0.1), (-1.4, 0.4)), 0.5) == {"verdict": "beyond", "worst_entry": "e0"}
     assert v(entries((-1.2, 0.4)), 0.5)["verdict"] == "undecided"  # 1.2 - 0.8 < 0.5
+    # a bootstrap's percentile interval decides where an entry has one (skewed: -1.2 with
+    # se 0.4 but every resample below -0.6 is beyond; one inside [-0.5, 0.5] within)
+    skewed = {"a": {"diff": -1.2, "se": 0.4, "ci95": [-1.9, -0.6]}}
+    assert v(skewed, 0.5) == {"verdict": "beyond", "worst_entry": "a"}
+    inside = {"a": {"diff": 0.1, "se": 0.3, "ci95": [-0.2, 0.45]}}
+    assert v(inside, 0.5)["verdict"] == "within"
+
+
+def test_paired_bootstrap(guard_folds, kitti_samples_full, tmp_path):
+    """The bootstrap's all-frames difference is the folds' (the evaluator on all frames), an
+    identical run has zero spread, a run that lost every other frame's cars a positive one,
+    and the resamples are a fixed draw of the seed."""
+    root = kitti_samples_full / "object"
+    ids = read_split(root / "ImageSets" / "labeled.txt")
+    label_dir = root / "training" / "label_2"
+    labels = [read_label(label_dir / f"{i}.txt") for i in ids]
+    ref = _as_results(labels, tmp_path / "ref", ids)
+    same = _as_results(labels, tmp_path / "same", ids)
+    half = _as_results(labels, tmp_path / "half", ids, keep=lambda i: int(i) % 2 == 0)
+    others = {"same": same, "half": half}
+    boot = guard_folds.bootstrap_differences(label_dir, ref, others, ids, 20, tol=0.5)
+    folded = guard_folds.fold_differences(label_dir, ref, others, ids, 3, tol=0.5)
+    assert boot["resamples"] == 20 and boot["frames"] == len(ids)
+    assert boot["reference"] == folded["reference"]
+    s = boot["runs"]["same"]
+    assert s["verdict"] == "within"
+    assert all(
+        v["diff"] == 0 and v["se"] == 0 and v["ci95"] == [0, 0] for v in s["entries"].values()
+    )
+    h = boot["runs"]["half"]["entries"]["Car 0.70 3d moderate"]
+    assert h["diff"] == folded["runs"]["half"]["entries"]["Car 0.70 3d moderate"]["diff"]
+    assert h["se"] > 0 and h["ci95"][0] <= h["ci95"][1] < 0  # every resample lost AP
+    # decided by the percentile interval: every resample lost more than 0.5 AP (13 frames:
+    # the differences are skewed, diff - 2 se would reach past zero)
+    assert boot["runs"]["half"]["verdict"] == "beyond"
+    again = guard_folds.bootstrap_differences(label_dir, ref, {"half": half}, ids, 20, tol=0.5)
+    assert again["runs"]["half"]["entries"] == boot["runs"]["half"]["entries"]
+    with pytest.raises(ValueError, match="resamples"):
+        guard_folds.bootstrap_differences(label_dir, ref, others, ids, 1, tol=0.5)
