@@ -233,13 +233,13 @@ def detector_spread(result_dirs: dict[str, Path], k: int, boots: int) -> dict:
             f"\npaired frame bootstrap, {boots} resamples of the {res['frames']} frames; "
             f"verdict at 2 standard errors (rule: every entry within {AP_TOLERANCE} AP):"
         )
-        print(f"{'runtime':28s} {'verdict':>10s}  deciding entry: diff, se, 95 % interval")
+        print(f"{'runtime':28s} {'verdict':>10s}  deciding entry: diff, se, median, 95 % interval")
         for label, r in res["runs"].items():
             e = r["entries"][r["worst_entry"]]
             lo, hi = e["ci95"]
             print(
                 f"{label:28s} {r['verdict']:>10s}  {r['worst_entry']}: {e['diff']:+.2f}, "
-                f"{e['se']:.2f}, [{lo:+.2f}, {hi:+.2f}]"
+                f"{e['se']:.2f}, {e['median']:+.2f}, [{lo:+.2f}, {hi:+.2f}]"
             )
     return out
 

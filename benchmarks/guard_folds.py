@@ -140,8 +140,8 @@ def bootstrap_differences(
     every run).
 
     Returns ``{'resamples': n, 'frames': N, 'reference': {entry: AP}, 'runs': {label:
-    {'entries': {entry: {'diff', 'se', 'ci95'}}, 'verdict', 'worst_entry'}}}``; ``ci95`` is
-    the 2.5 / 97.5 percentile interval of the resampled differences.
+    {'entries': {entry: {'diff', 'se', 'median', 'ci95'}}, 'verdict', 'worst_entry'}}}``;
+    ``median`` and ``ci95`` (2.5 / 97.5 percentiles) are those of the resampled differences.
     """
     if n < 2:
         raise ValueError(f"need at least 2 bootstrap resamples, got {n}")
@@ -173,6 +173,7 @@ def bootstrap_differences(
             entries[e] = {
                 "diff": full[label][e] - ref_full[e],
                 "se": float(d.std(ddof=1)),
+                "median": float(np.median(d)),
                 "ci95": [float(np.percentile(d, 2.5)), float(np.percentile(d, 97.5))],
             }
         runs[label] = {"entries": entries, **verdict(entries, tol)}
