@@ -463,3 +463,46 @@ def test_two_depth_processes_train_like_one(env, tmp_path):
         [losses[s] for s in losses], [expected[s] for s in losses], rtol=1e-5
     )
     assert_params_close(workdir, reference, steps)
+
+
+# Two processes that start the liveness beacon (polling the coordination service without a
+# pause, to widen the window) and end normally. Before the beacon was stopped and joined at
+# exit, about half of such pairs aborted in Python's finalization ("terminate called after
+# throwing an instance of ''", exit -6): a daemon thread inside a C++ service call.
+BEACON_WORKER = """
+import sys
+sys.path.insert(0, {repo!r})
+from gac_jax.training import multiprocess
+multiprocess.BEACON_S = 0.0
+assert multiprocess.initialize_distributed("localhost:" + sys.argv[1], 2, int(sys.argv[2]))
+from jax.experimental import multihost_utils
+with multiprocess.watch_peers("for the test", poll_s=0.0):
+    total = int(multihost_utils.process_allgather(multiprocess.jax.process_index()).sum())
+print("gathered", total, flush=True)
+"""
+
+
+def test_processes_with_the_liveness_beacon_exit_cleanly(env, tmp_path):
+    script = tmp_path / "beacon.py"
+    script.write_text(BEACON_WORKER.format(repo=str(REPO)))
+    for _ in range(4):
+        port = str(free_port())
+        procs = [
+            subprocess.Popen(
+                [sys.executable, str(script), port, str(i)],
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+                start_new_session=True,
+            )
+            for i in range(2)
+        ]
+        try:
+            outs = [p.communicate(timeout=120)[0] for p in procs]
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    os.killpg(p.pid, signal.SIGKILL)
+        assert [p.returncode for p in procs] == [0, 0], "\n---\n".join(outs)
+        assert all("gathered 1" in out for out in outs), outs

@@ -29,6 +29,7 @@ In a single process every function here is free and trivial.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 import itertools
@@ -193,18 +194,56 @@ def _start_beacon() -> None:
     :func:`watch_peers` reads the counters: a peer whose counter stops moving is dead
     (or frozen) long before JAX's own heartbeat timeout ends the survivors with a C++
     abort.
+
+    The beacon is stopped and joined at exit (:func:`stop_threads`, registered with
+    ``atexit`` after JAX's own handler, so it runs first): a daemon thread still inside
+    a coordination-service call while the interpreter finalizes is ended by a forced
+    unwind that the C++ binding catches, and the process aborts ("terminate called
+    after throwing an instance of ''  FATAL: exception not rethrown", exit -6) after a
+    run that finished.
     """
     from jax._src import distributed
 
     client, me = distributed.global_state.client, distributed.global_state.process_id
+    stop = threading.Event()
 
     def beat() -> None:
-        while True:
+        while not stop.is_set():
             with contextlib.suppress(Exception):  # the service may be gone: watchers decide
                 client.key_value_increment(_beacon_key(me), 1)
-            time.sleep(BEACON_S)
+            stop.wait(BEACON_S)
 
-    threading.Thread(target=beat, name="gac-beacon", daemon=True).start()
+    thread = threading.Thread(target=beat, name="gac-beacon", daemon=True)
+    thread.start()
+    _register_thread(stop, thread)
+
+
+_threads: list[tuple[threading.Event, threading.Thread]] = []
+_threads_lock = threading.Lock()
+
+
+def _register_thread(stop: threading.Event, thread: threading.Thread) -> None:
+    with _threads_lock:
+        if not _threads:
+            atexit.register(stop_threads)  # LIFO: before JAX's shutdown of the client
+        _threads.append((stop, thread))
+
+
+def stop_threads(timeout_s: float = 10.0) -> None:
+    """Stops and joins this module's threads that call into the coordination service.
+
+    Called at exit (registered when the first one starts); idempotent. A thread that does
+    not finish within ``timeout_s`` (a call blocked on a dead service) is left alone.
+    """
+    with _threads_lock:
+        threads = list(_threads)
+        _threads.clear()
+    for stop, _ in threads:
+        stop.set()
+    deadline = time.monotonic() + timeout_s
+    for _, thread in threads:
+        if thread is not threading.current_thread():
+            thread.join(max(0.0, deadline - time.monotonic()))
 
 
 @contextlib.contextmanager
@@ -247,6 +286,8 @@ def watch_peers(what: str, stall_s: float | None = None, poll_s: float = 0.5) ->
         yield
     finally:
         done.set()
+        if thread is not threading.current_thread():
+            thread.join(poll_s + 10.0)  # not left inside a service call at exit (see beacon)
 
 
 _exit_lock = threading.Lock()
