@@ -72,6 +72,29 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def run_pair(command, env: dict, timeout: float = 120) -> tuple[list, list[str]]:
+    """Runs ``command(i)`` for processes 0 and 1 to their end (both must end within
+    ``timeout``: no hang); returns the processes and their outputs. Leftovers are killed."""
+    procs = [
+        subprocess.Popen(
+            command(i),
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+        )
+        for i in range(2)
+    ]
+    try:
+        outs = [p.communicate(timeout=timeout)[0] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+    return procs, outs
+
+
 def tiny_args(root: Path, workdir: Path) -> list[str]:
     return [
         *tiny_train_args(root, workdir),
@@ -349,23 +372,7 @@ except Exception as e:
 
 def test_a_hanging_process_is_stopped_by_the_step_watchdog(env, tmp_path):
     port = str(free_port())
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-c", HANGING_WORKER, str(i), port],
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            start_new_session=True,
-        )
-        for i in range(2)
-    ]
-    try:
-        outs = [p.communicate(timeout=120)[0] for p in procs]  # both end: no hang
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
+    procs, outs = run_pair(lambda i: [sys.executable, "-c", HANGING_WORKER, str(i), port], env)
     assert "process 1 hangs" in outs[1]
     assert all(p.returncode != 0 for p in procs), outs
     # Whichever watchdog fires first (their clocks start a step apart), the stop cascades:
@@ -487,22 +494,8 @@ def test_processes_with_the_liveness_beacon_exit_cleanly(env, tmp_path):
     script.write_text(BEACON_WORKER.format(repo=str(REPO)))
     for _ in range(4):
         port = str(free_port())
-        procs = [
-            subprocess.Popen(
-                [sys.executable, str(script), port, str(i)],
-                env=env,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                text=True,
-                start_new_session=True,
-            )
-            for i in range(2)
-        ]
-        try:
-            outs = [p.communicate(timeout=120)[0] for p in procs]
-        finally:
-            for p in procs:
-                if p.poll() is None:
-                    os.killpg(p.pid, signal.SIGKILL)
+        procs, outs = run_pair(
+            lambda i, port=port: [sys.executable, str(script), port, str(i)], env
+        )
         assert [p.returncode for p in procs] == [0, 0], "\n---\n".join(outs)
         assert all("gathered 1" in out for out in outs), outs

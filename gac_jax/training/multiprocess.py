@@ -195,8 +195,8 @@ def _start_beacon() -> None:
     (or frozen) long before JAX's own heartbeat timeout ends the survivors with a C++
     abort.
 
-    The beacon is stopped and joined at exit (:func:`stop_threads`, registered with
-    ``atexit`` after JAX's own handler, so it runs first): a daemon thread still inside
+    The beacon is stopped and joined at exit (registered with ``atexit`` after JAX's
+    own handler, so it runs first): a daemon thread still inside
     a coordination-service call while the interpreter finalizes is ended by a forced
     unwind that the C++ binding catches, and the process aborts ("terminate called
     after throwing an instance of ''  FATAL: exception not rethrown", exit -6) after a
@@ -215,35 +215,14 @@ def _start_beacon() -> None:
 
     thread = threading.Thread(target=beat, name="gac-beacon", daemon=True)
     thread.start()
-    _register_thread(stop, thread)
+    atexit.register(_stop_beacon, stop, thread)  # LIFO: before JAX's shutdown of the client
 
 
-_threads: list[tuple[threading.Event, threading.Thread]] = []
-_threads_lock = threading.Lock()
-
-
-def _register_thread(stop: threading.Event, thread: threading.Thread) -> None:
-    with _threads_lock:
-        if not _threads:
-            atexit.register(stop_threads)  # LIFO: before JAX's shutdown of the client
-        _threads.append((stop, thread))
-
-
-def stop_threads(timeout_s: float = 10.0) -> None:
-    """Stops and joins this module's threads that call into the coordination service.
-
-    Called at exit (registered when the first one starts); idempotent. A thread that does
-    not finish within ``timeout_s`` (a call blocked on a dead service) is left alone.
-    """
-    with _threads_lock:
-        threads = list(_threads)
-        _threads.clear()
-    for stop, _ in threads:
-        stop.set()
-    deadline = time.monotonic() + timeout_s
-    for _, thread in threads:
-        if thread is not threading.current_thread():
-            thread.join(max(0.0, deadline - time.monotonic()))
+def _stop_beacon(stop: threading.Event, thread: threading.Thread, timeout_s: float = 10.0):
+    """At exit: the beacon leaves its service call and ends (a call blocked on a dead
+    service is left alone after ``timeout_s``)."""
+    stop.set()
+    thread.join(timeout_s)
 
 
 @contextlib.contextmanager
