@@ -59,10 +59,12 @@ def quantized(task, config, onnx_path: Path, size, keep, args, tmp: Path) -> Pat
     """``onnx_path`` quantized by NNCF as ``--precision int8`` does (``keep``: layers kept in
     float32); the detector calibrated on real frames (eval transform), depth on noise."""
     import numpy as np
-    import openvino as ov
 
     from gac_jax.deploy.int8 import calibration_frames, quantize_model
+    from gac_jax.deploy.telemetry import import_openvino
     from gac_jax.geometry import level_plane
+
+    ov = import_openvino()
 
     if task == "detect3d":
         feeds, _ = calibration_frames(task, config, args.int8_frames, 0)

@@ -43,6 +43,7 @@ import numpy as np
 from gac_jax.data.files import KittiFormatError, atomic_write
 from gac_jax.data.loader import plane_array
 from gac_jax.deploy.export import artifact
+from gac_jax.deploy.telemetry import import_nncf, import_openvino
 
 INT8_MODEL = "model_int8.xml"  # + model_int8.bin (weights)
 INT8_WEIGHTS = "model_int8.bin"
@@ -211,8 +212,8 @@ def quantize_model(onnx_path: Path, feeds: list[dict], keep_float: tuple[str, ..
     """The NNCF-quantized OpenVINO model of ``onnx_path`` (calibrated on ``feeds``)."""
     import logging
 
-    import nncf
-    import openvino as ov
+    nncf = import_nncf()
+    ov = import_openvino()
 
     nncf.set_log_level(logging.WARNING)  # not one INFO line per layer kept in float32
     model = ov.Core().read_model(str(onnx_path))
@@ -230,7 +231,7 @@ def quantize_model(onnx_path: Path, feeds: list[dict], keep_float: tuple[str, ..
 def _save_atomic(model, out: Path) -> dict[str, str]:
     """Saves ``model`` as ``out/model_int8.{xml,bin}`` via a temporary folder (weights first,
     the xml that references them last); returns the sha256 of both files."""
-    import openvino as ov
+    ov = import_openvino()
 
     tmp = Path(tempfile.mkdtemp(prefix=".int8.", dir=out))
     try:
@@ -285,7 +286,7 @@ def ensure_int8(out_dir: str | os.PathLike, task: str, config, settings: Int8Set
     if why is None:
         return out / INT8_MODEL
     if settings.keep_float:  # refuse a bad pattern before announcing the build
-        import openvino as ov
+        ov = import_openvino()
 
         check_keep_float(ov.Core().read_model(str(out / artifact.MODEL_FILE)), settings.keep_float)
     print(f"{out / INT8_MODEL}: {why}; quantizing (NNCF, {settings.frames} calibration frames)")

@@ -31,6 +31,7 @@ import jax
 import numpy as np
 
 from gac_jax.data.files import KittiFormatError
+from gac_jax.deploy.telemetry import import_openvino
 from gac_jax.geometry import DEFAULT_CAMERA_HEIGHT, level_plane
 
 RUNTIMES = ("jax", "onnxruntime", "openvino")
@@ -71,7 +72,7 @@ def cpu_flags() -> dict:
 
 
 def openvino_capabilities() -> list[str]:
-    import openvino as ov
+    ov = import_openvino()
 
     return list(ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES"))
 
@@ -239,7 +240,7 @@ class OnnxNetwork:
         return shapes, [o.name for o in self._session.get_outputs()]
 
     def _load_openvino(self, precision, threads, batch_size):
-        import openvino as ov
+        ov = import_openvino()
 
         core = ov.Core()
         source = self._model_for(precision)
