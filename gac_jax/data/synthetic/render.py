@@ -108,7 +108,13 @@ def cast(solid: shapes.Solid, cam: Camera, rect, stride: int = 1):
     u0, u1, v0, v1 = rect
     C, Minv = cam.C, cam.Minv
     num = solid.offsets - solid.normals @ C  # < 0: camera outside that face's half-space
-    coef = (solid.normals @ Minv) / num[:, None]  # q_k(u, v) = coef_k . [u, v, 1]
+    # q_k(u, v) = coef_k . [u, v, 1]. A face whose plane passes through the camera (num 0,
+    # e.g. a multi-rig camera exactly at a box's top height) is seen edge-on: its
+    # coefficients are +-inf, and the comparisons below then keep or drop whole rays as
+    # that face's half-space does (a ray exactly in the plane gives nan: a miss), so the
+    # division warnings say nothing wrong.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        coef = (solid.normals @ Minv) / num[:, None]
     U = np.arange(u0, u1 + 1, stride, dtype=np.float32)[None, :]
     V = np.arange(v0, v1 + 1, stride, dtype=np.float32)[:, None]
     front = np.flatnonzero(num < 0)
@@ -126,8 +132,9 @@ def cast(solid: shapes.Solid, cam: Camera, rect, stride: int = 1):
         np.copyto(face, np.int8(front[k]), where=nearer)
     hit = rho > 0
     cb = coef[back].astype(np.float32)
-    for k in range(len(back)):
-        hit &= rho >= cb[k, 0] * U + (cb[k, 1] * V + cb[k, 2])
+    with np.errstate(invalid="ignore"):  # inf - inf of an edge-on face: nan, not a hit
+        for k in range(len(back)):
+            hit &= rho >= cb[k, 0] * U + (cb[k, 1] * V + cb[k, 2])
     return hit, rho, face
 
 
