@@ -343,9 +343,9 @@ def _two_device_check() -> None:
 
 def test_loss_with_the_batch_sharded_over_two_devices_equals_one_device():
     tests_dir = Path(__file__).resolve().parent
-    env = dict(
-        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu"
-    )
+    # the session's fast-compile flags (tests/conftest.py) stay, two CPU devices are added
+    flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2"
+    env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu")
     env["PYTHONPATH"] = os.pathsep.join([str(tests_dir.parent), str(tests_dir)])
     code = "import test_detection_loss as t; t._two_device_check()"
     result = subprocess.run(

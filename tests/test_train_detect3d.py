@@ -76,7 +76,8 @@ def test_train_step_compiles_once_and_two_devices_match_one(kitti_object_root, t
     script = textwrap.dedent(
         f"""
         import os, sys
-        os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+        # the session's fast-compile flags (tests/conftest.py) stay, two CPU devices are added
+        os.environ["XLA_FLAGS"] += " --xla_force_host_platform_device_count=2"
         import jax, numpy as np
         sys.path.insert(0, {str(REPO)!r})
         from gac_jax.training import parallel
