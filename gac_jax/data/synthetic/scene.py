@@ -123,7 +123,13 @@ class Scene:
         return np.stack([d[0] * R[0, k] + d[1] * R[1, k] + d[2] * R[2, k] for k in range(3)], -1)
 
 
-def _rotation_x(a: float) -> np.ndarray:
+def place_object(cls, dims, local_parts, loc, ry, support) -> SceneObject:
+    """A road user whose box-frame parts are turned by ``ry`` and moved to ``loc`` (camera)."""
+    R = rotation_y_matrix(ry)
+    return SceneObject(cls, dims, loc, ry, [p.transformed(R, loc) for p in local_parts], support)
+
+
+def rotation_x(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
@@ -132,7 +138,7 @@ def _normal(rng, mean, std, clip=2.5):
     return mean + std * float(np.clip(rng.standard_normal(), -clip, clip))
 
 
-class _Builder:
+class SceneBuilder:
     """Samples one scene; methods add road, roadside and road users in turn."""
 
     def __init__(self, rng, P2, image_size, counts, pitch, camera_height):
@@ -145,9 +151,11 @@ class _Builder:
             np.deg2rad(np.clip(rng.normal(0.0, 0.5), -1.0, 1.0)) if pitch is None else pitch
         )
         self.heading = np.deg2rad(np.clip(rng.normal(0.0, 3.0), -8.0, 8.0))
-        self.level_R = _rotation_x(self.pitch)
+        self.level_R = rotation_x(self.pitch)
         self.road_rotation = self.level_R @ rotation_y_matrix(self.heading)
         self.background: list[shapes.Solid] = []
+        self.road_solids: list[shapes.Solid] = []  # the background in road coordinates
+        self.road_end = roadside.ROAD_END  # how far the roadside is built (s, metres)
         self.objects: list[SceneObject] = []
         self.obstacles: list[Footprint] = []
 
@@ -221,6 +229,7 @@ class _Builder:
         )
 
     def add_road_solid(self, solid: shapes.Solid):
+        self.road_solids.append(solid)
         self.background.append(solid.transformed(self.road_rotation, self.road_translation))
 
     def roadside(self):
@@ -241,7 +250,7 @@ class _Builder:
             for _ in range(int(rng.integers(0, 3))):
                 self._place("Car", FAR_RANGE)
 
-    def _propose(self, cls):
+    def propose(self, cls):
         """A position ``(t, s)``, heading ``psi`` (road frame) and support height for ``cls``."""
         rng, h = self.rng, self.h
         s = rng.uniform(2.0, 100.0)
@@ -289,7 +298,7 @@ class _Builder:
         for _ in range(tries):
             dims = np.array([_normal(rng, m, sd) for m, sd in CLASS_SIZES[cls]])
             dims = np.round(dims, 2)
-            t, s, psi, support = self._propose(cls)
+            t, s, psi, support = self.propose(cls)
             foot = Footprint(t, s, dims[2] / 2, dims[1] / 2, psi)
             margin = 0.3 if cls == "Car" else 0.15
             if any(foot.overlaps(o, margin) for o in self.obstacles):
@@ -307,18 +316,18 @@ class _Builder:
             return
 
     def _make(self, cls, dims, loc, ry, support):
+        return place_object(cls, dims, self.object_parts(cls, dims), loc, ry, support)
+
+    def object_parts(self, cls, dims) -> list[shapes.Solid]:
+        """The part models of a road user of size ``dims`` (h, w, l) in its box frame."""
         rng = self.rng
         h, w, l = dims
         if cls == "Car":
             paint = PAINTS[rng.choice(len(PAINTS), p=PAINT_WEIGHTS)] * rng.uniform(0.9, 1.1)
-            parts = shapes.car_parts(h, w, l, np.clip(paint, 0, 1), rng)
-        elif cls == "Pedestrian":
-            parts = shapes.pedestrian_parts(h, w, l, rng)
-        else:
-            parts = shapes.cyclist_parts(h, w, l, rng)
-        R = rotation_y_matrix(ry)
-        parts = [p.transformed(R, loc) for p in parts]
-        return SceneObject(cls, dims, loc, ry, parts, support)
+            return shapes.car_parts(h, w, l, np.clip(paint, 0, 1), rng)
+        if cls == "Pedestrian":
+            return shapes.pedestrian_parts(h, w, l, rng)
+        return shapes.cyclist_parts(h, w, l, rng)
 
     # --------------------------------------------------------------- light
     def light(self) -> dict:
@@ -363,7 +372,7 @@ def sample_scene(
       pitch, camera_height: fix the camera pose (radians, metres) instead of
         sampling it (pitch ~ N(0, 0.5 deg) clipped to +-1 deg, height 1.65 +- 0.05 m).
     """
-    b = _Builder(
+    b = SceneBuilder(
         rng, P2, image_size, DEFAULT_COUNTS if counts is None else counts, pitch, camera_height
     )
     road = b.road()
