@@ -251,7 +251,12 @@ class SceneBuilder:
                 self._place("Car", FAR_RANGE)
 
     def propose(self, cls):
-        """A position ``(t, s)``, heading ``psi`` (road frame) and support height for ``cls``."""
+        """A position ``(t, s)``, heading ``psi`` (road frame), support height and kind for ``cls``.
+
+        ``kind`` says where it is: ``parked``, ``lane`` (a car in its lane), ``stray`` (a car
+        at a random heading), ``cycle_lane``, ``crossing`` (on the zebra crossing),
+        ``sidewalk`` (walking along the road) or ``standing`` (at a random heading).
+        """
         rng, h = self.rng, self.h
         s = rng.uniform(2.0, 100.0)
         if cls == "Car":
@@ -259,27 +264,29 @@ class SceneBuilder:
                 side = list(self.parking)[rng.integers(len(self.parking))]
                 t = self.parking[side] + rng.normal(0.0, 0.12)
                 psi = rng.choice([0.0, np.pi]) + np.deg2rad(rng.normal(0.0, 2.0))
+                kind = "parked"
             else:
                 centre, psi = self.lanes[rng.integers(len(self.lanes))]
                 t = centre + np.clip(rng.normal(0.0, 0.25), -0.5, 0.5)
                 psi += np.deg2rad(rng.normal(0.0, 3.0))
+                kind = "lane"
                 if rng.random() < 0.08:
-                    psi = rng.uniform(-np.pi, np.pi)
-            return t, s, psi, h
+                    psi, kind = rng.uniform(-np.pi, np.pi), "stray"
+            return t, s, psi, h, kind
         if cls == "Cyclist":
             if rng.random() < 0.8:
                 side = 1 if rng.random() < 0.7 or not any(p == np.pi for _, p in self.lanes) else -1
                 lanes = [c for c, p in self.lanes if (p == 0.0) == (side == 1)]
                 outer = max(lanes, key=abs) + side * (self.lane_w / 2 - 0.7)
                 psi = (0.0 if side == 1 else np.pi) + np.deg2rad(rng.normal(0.0, 4.0))
-                return outer + rng.normal(0.0, 0.15), s, psi, h
+                return outer + rng.normal(0.0, 0.15), s, psi, h, "cycle_lane"
             cls = "Pedestrian"  # on the sidewalk, like a pedestrian
         # pedestrians (and cyclists on the sidewalk)
         if self.crosswalk is not None and rng.random() < 0.3:
             s0, s1 = self.crosswalk
             t = rng.uniform(self.edges[-1] + 0.5, self.edges[1] - 0.5)
             psi = rng.choice([-np.pi / 2, np.pi / 2]) + np.deg2rad(rng.normal(0.0, 10.0))
-            return t, rng.uniform(s0 + 0.4, s1 - 0.4), psi, h
+            return t, rng.uniform(s0 + 0.4, s1 - 0.4), psi, h, "crossing"
         side = -1 if rng.random() < 0.5 else 1
         edge = self.edges[side]
         if self.sidewalk[side] > 0:
@@ -289,16 +296,19 @@ class SceneBuilder:
             t = edge + side * rng.uniform(0.5, 2.0)
             support = h
         psi = rng.choice([0.0, np.pi]) + np.deg2rad(rng.normal(0.0, 15.0))
+        kind = "sidewalk"
         if rng.random() < 0.25:
-            psi = rng.uniform(-np.pi, np.pi)
-        return t, s, psi, support
+            psi, kind = rng.uniform(-np.pi, np.pi), "standing"
+        return t, s, psi, support, kind
+
+    def sample_dimensions(self, cls) -> np.ndarray:
+        """(3,) ``h, w, l`` of a road user of class ``cls`` (KITTI's statistics, cm steps)."""
+        return np.round(np.array([_normal(self.rng, m, sd) for m, sd in CLASS_SIZES[cls]]), 2)
 
     def _place(self, cls, depth_range, tries: int = 30):
-        rng = self.rng
         for _ in range(tries):
-            dims = np.array([_normal(rng, m, sd) for m, sd in CLASS_SIZES[cls]])
-            dims = np.round(dims, 2)
-            t, s, psi, support = self.propose(cls)
+            dims = self.sample_dimensions(cls)
+            t, s, psi, support, _ = self.propose(cls)
             foot = Footprint(t, s, dims[2] / 2, dims[1] / 2, psi)
             margin = 0.3 if cls == "Car" else 0.15
             if any(foot.overlaps(o, margin) for o in self.obstacles):
