@@ -227,7 +227,7 @@ class _Job:
     split_of: dict[int, str]
 
 
-def _png(array: np.ndarray, png_filter: int, huffman_only: bool = False) -> bytes:
+def png_bytes(array: np.ndarray, png_filter: int, huffman_only: bool = False) -> bytes:
     """PNG bytes at compression level 1 with a fixed row filter (BGR for colour).
 
     Measured here: for the noisy colour renders a SUB filter with Huffman-only
@@ -258,11 +258,13 @@ def _write_frame(job: _Job, index: int) -> float:
         view = frame.views[cam]
         dense = files.depth_to_uint16(view.depth)
         sparse = np.where(frame.sparse[cam], dense, np.uint16(0))
-        files.write_bytes_atomic(paths[f"dense_{cam}"], _png(dense, cv2.IMWRITE_PNG_FILTER_UP))
-        files.write_bytes_atomic(paths[f"sparse_{cam}"], _png(sparse, cv2.IMWRITE_PNG_FILTER_NONE))
+        files.write_bytes_atomic(paths[f"dense_{cam}"], png_bytes(dense, cv2.IMWRITE_PNG_FILTER_UP))
+        files.write_bytes_atomic(
+            paths[f"sparse_{cam}"], png_bytes(sparse, cv2.IMWRITE_PNG_FILTER_NONE)
+        )
         image = cv2.cvtColor(view.image, cv2.COLOR_RGB2BGR)
         files.write_bytes_atomic(
-            paths[f"image_{cam}"], _png(image, cv2.IMWRITE_PNG_FILTER_SUB, True)
+            paths[f"image_{cam}"], png_bytes(image, cv2.IMWRITE_PNG_FILTER_SUB, True)
         )
         _link(paths[f"image_{cam}"], paths[f"raw_{cam}"])
     return time.perf_counter() - start
