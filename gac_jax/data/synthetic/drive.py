@@ -222,6 +222,7 @@ class ClipFrame:
       view: :class:`render.ViewRender` of ``P2`` (image, depth, object ids).
       objects: KITTI labels (labelled objects first, DontCare last).
       track_ids: (M,) track id per label line (-1 for DontCare).
+      label_source: (M,) index into ``scene.objects`` (and ``view.object_ids``) per line.
       plane: (4,) ground plane; pose: (3, 4) camera-to-world.
     """
 
@@ -229,6 +230,7 @@ class ClipFrame:
     view: render.ViewRender
     objects: KittiObjects
     track_ids: np.ndarray
+    label_source: np.ndarray
     plane: np.ndarray
     pose: np.ndarray
 
@@ -243,5 +245,11 @@ def render_clip_frame(drive: Drive, seed: int, sequence: int, k: int) -> ClipFra
     objects, source = labels.frame_labels(scene, view, drive.calib.P2, drive.image_size)
     track_ids = np.where(objects.type == "DontCare", -1, ids[source])
     return ClipFrame(
-        scene, view, objects, track_ids.astype(np.int64), drive.ego.plane(k), drive.ego.pose(k)
+        scene,
+        view,
+        objects,
+        track_ids.astype(np.int64),
+        source,
+        drive.ego.plane(k),
+        drive.ego.pose(k),
     )
