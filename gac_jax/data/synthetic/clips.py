@@ -41,9 +41,10 @@ DONE = "clips.json"
 MARKER = ".clips_in_progress.json"
 PARTIAL = ".clips_partial"
 OWNED = ("training", PARTIAL)
-# Seconds to render one 375x1242 frame on one core of a 2-core Xeon (shared, loaded);
-# only for the time estimate ensure_clips prints (benchmarks/bench_clips.py measures it).
-SECONDS_PER_FRAME = 1.0
+# Seconds to render and write one 375x1242 clip frame in one process: 0.13 s CPU, 0.45 s
+# wall on a shared 2-core Xeon at load 11 (benchmarks/bench_clips.py); only for the time
+# estimate ensure_clips prints.
+SECONDS_PER_FRAME = 0.5
 
 
 @dataclasses.dataclass(frozen=True)

@@ -83,9 +83,11 @@ class EgoMotion:
 
     def pose(self, k: int) -> np.ndarray:
         """(3, 4) camera-to-world pose of frame ``k`` (world = frame 0's camera frame)."""
-        R0, Rk = self.road_rotation(0), self.road_rotation(k)
-        rotation = R0 @ Rk.T
-        translation = R0 @ np.array([0.0, 0.0, self.travelled(k)])
+        # X_road = Rk^T X_k + (lateral, 0, travelled) and X_0 = R0 (X_road - (lateral, 0, 0)):
+        # the rotation R0 Rk^T is a pitch difference (the yaw cancels), the translation the
+        # distance travelled along the road direction seen from frame 0
+        rotation = rotation_x(self.pitch(0) - self.pitch(k))
+        translation = self.road_rotation(0)[:, 2] * self.travelled(k)
         return np.concatenate([rotation, translation[:, None]], axis=1) + 0.0  # (no -0.0)
 
     def plane(self, k: int) -> np.ndarray:
