@@ -135,18 +135,8 @@ class TrackingFrame:
 
 
 @dataclasses.dataclass(frozen=True)
-class KittiTrackingLayout:
-    """Paths of a KITTI tracking root and readers for its sequences."""
-
-    root: Path
-    subset: str = "training"
-
-    def __post_init__(self):
-        object.__setattr__(self, "root", Path(self.root))
-
-    @property
-    def frames_dir(self) -> Path:
-        return self.root / self.subset
+class KittiTrackingLayout(kitti.KittiRoot):
+    """Paths of a KITTI tracking root (``root/training`` holds the sequences) and readers."""
 
     def image(self, sequence: str, frame: int) -> Path:
         return self.frames_dir / "image_02" / sequence / f"{frame:06d}.png"

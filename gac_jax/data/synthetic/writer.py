@@ -55,8 +55,38 @@ DONE = "synthetic.json"
 OWNED = ("training", "ImageSets", "depth")  # what a fresh start may delete (only in our own dirs)
 
 
+class SceneArguments:
+    """What frames and clips share: seed, image size (``height``, ``width``), rig set and the
+    road users' ``classes`` (name, min, max); checked by :meth:`validate_scene`."""
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return (self.height, self.width)
+
+    @property
+    def counts(self) -> dict[str, tuple[int, int]]:
+        return {name: (lo, hi) for name, lo, hi in self.classes}
+
+    def validate_scene(self) -> None:
+        """Raises ValueError with a clear message for unusable shared arguments."""
+        rigs.check_rig_set(self.rigs)
+        if not isinstance(self.seed, int | np.integer) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
+        if not (32 <= self.height <= 4096 and 64 <= self.width <= 8192):
+            raise ValueError(
+                f"image size must be 32..4096 x 64..8192 pixels, got {self.height}x{self.width}"
+            )
+        for name, lo, hi in self.classes:
+            if name not in CLASS_SIZES:
+                raise ValueError(f"unknown class {name!r} (known: {', '.join(CLASS_SIZES)})")
+            if not 0 <= lo <= hi <= 50:
+                raise ValueError(f"class {name}: need 0 <= min <= max <= 50, got {lo}..{hi}")
+        if len({c[0] for c in self.classes}) != len(self.classes):
+            raise ValueError("a class is listed twice")
+
+
 @dataclasses.dataclass(frozen=True)
-class DatasetSpec:
+class DatasetSpec(SceneArguments):
     """The arguments that determine a generated dataset's content."""
 
     num_frames: int
@@ -69,36 +99,15 @@ class DatasetSpec:
 
     def validate(self) -> None:
         """Raises ValueError with a clear message for unusable arguments."""
-        rigs.check_rig_set(self.rigs)
         if not isinstance(self.num_frames, int | np.integer) or self.num_frames < 1:
             raise ValueError(
                 f"number of frames must be a positive integer, got {self.num_frames!r}"
             )
         if self.num_frames > 1_000_000:
             raise ValueError(f"at most 1,000,000 frames (6-digit ids), got {self.num_frames}")
-        if not isinstance(self.seed, int | np.integer) or self.seed < 0:
-            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
-        if not (32 <= self.height <= 4096 and 64 <= self.width <= 8192):
-            raise ValueError(
-                f"image size must be 32..4096 x 64..8192 pixels, got {self.height}x{self.width}"
-            )
+        self.validate_scene()
         if not 0.0 <= self.val_fraction <= 1.0:
             raise ValueError(f"val fraction must be in [0, 1], got {self.val_fraction}")
-        for name, lo, hi in self.classes:
-            if name not in CLASS_SIZES:
-                raise ValueError(f"unknown class {name!r} (known: {', '.join(CLASS_SIZES)})")
-            if not 0 <= lo <= hi <= 50:
-                raise ValueError(f"class {name}: need 0 <= min <= max <= 50, got {lo}..{hi}")
-        if len({c[0] for c in self.classes}) != len(self.classes):
-            raise ValueError("a class is listed twice")
-
-    @property
-    def image_size(self) -> tuple[int, int]:
-        return (self.height, self.width)
-
-    @property
-    def counts(self) -> dict[str, tuple[int, int]]:
-        return {name: (lo, hi) for name, lo, hi in self.classes}
 
     def to_json(self) -> dict:
         return {
@@ -421,13 +430,7 @@ def generate_dataset(
     ]
     if state == "done" and not todo and all(p.exists() for p in dataset_files):
         return GenerationResult(root, num_frames, 0, [])
-    root.mkdir(parents=True, exist_ok=True)
-    if not os.access(root, os.W_OK):
-        raise PermissionError(f"{root}: directory is not writable")
-    with files.atomic_write(root / MARKER) as f:
-        json.dump(spec.to_json(), f, indent=1)
-    (root / DONE).unlink(missing_ok=True)  # incomplete until everything is back
-    remove_temporaries(root)
+    start_writing(root, spec.to_json(), DONE, MARKER, OWNED)
     if state != "fresh":
         todo = [
             i
@@ -445,10 +448,27 @@ def generate_dataset(
             f.write(calibration.cam_to_cam_text(rig, rigs.image_size(rig, spec.image_size)))
         with files.atomic_write(raw / "calib_velo_to_cam.txt") as f:
             f.write(calibration.velo_to_cam_text(rig))
-    with files.atomic_write(root / DONE) as f:
-        json.dump(spec.to_json(), f, indent=1)
-    (root / MARKER).unlink(missing_ok=True)
+    finish_writing(root, spec.to_json(), DONE, MARKER)
     return GenerationResult(root, num_frames, len(todo), seconds)
+
+
+def start_writing(root: Path, want: dict, done_name: str, marker_name: str, owned) -> None:
+    """Marks ``root`` as being written (``marker_name`` holds ``want``; ``done_name`` goes
+    until everything is back) and deletes an interrupted run's temporary files."""
+    root.mkdir(parents=True, exist_ok=True)
+    if not os.access(root, os.W_OK):
+        raise PermissionError(f"{root}: directory is not writable")
+    with files.atomic_write(root / marker_name) as f:
+        json.dump(want, f, indent=1)
+    (root / done_name).unlink(missing_ok=True)  # incomplete until everything is back
+    remove_temporaries(root, owned)
+
+
+def finish_writing(root: Path, want: dict, done_name: str, marker_name: str) -> None:
+    """Writes the description ``want`` as ``done_name`` (last) and drops the marker."""
+    with files.atomic_write(root / done_name) as f:
+        json.dump(want, f, indent=1)
+    (root / marker_name).unlink(missing_ok=True)
 
 
 def remove_temporaries(root: Path, owned=OWNED) -> None:
