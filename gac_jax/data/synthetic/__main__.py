@@ -70,8 +70,15 @@ def _fraction(text: str) -> float:
     return value
 
 
+class _Parser(argparse.ArgumentParser):
+    """Bad arguments: one line (``PROG: error: ...``) and exit status 2, no usage block."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="python -m gac_jax.data.synthetic",
         description="Generate a synthetic KITTI-format driving dataset (3D objects + depth).",
     )
