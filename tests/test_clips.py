@@ -72,6 +72,9 @@ def test_layout_manifest_and_reader(clips):
     assert (manifest["num_sequences"], manifest["frames_per_sequence"]) == (SEQUENCES, FRAMES)
     assert not (clips / MARKER).exists() and not (clips / ".clips_partial").exists()
     assert not list(clips.rglob(".*.tmp"))
+    found, seq = tracking.KittiTrackingLayout.locate(clips / "training" / "image_02" / "0001")
+    assert (found.root, found.subset, seq) == (clips.resolve(), "training", "0001")
+    assert tracking.KittiTrackingLayout.locate(clips / "training") is None
     for seq in layout.sequences():
         assert layout.frame_numbers(seq) == list(range(FRAMES))
         calib = kitti.read_calib(layout.calib(seq))  # the project's reader, P2 and the rest

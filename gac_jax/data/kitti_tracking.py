@@ -138,6 +138,16 @@ class TrackingFrame:
 class KittiTrackingLayout(kitti.KittiRoot):
     """Paths of a KITTI tracking root (``root/training`` holds the sequences) and readers."""
 
+    @classmethod
+    def locate(cls, image_dir: str | os.PathLike) -> tuple[KittiTrackingLayout, str] | None:
+        """``(layout, sequence)`` of a sequence's image folder ``ROOT/<subset>/image_02/SSSS``
+        whose calibration is where the layout puts it; None for any other folder."""
+        folder = Path(image_dir).resolve()
+        if folder.parent.name != "image_02" or not folder.name.isdigit():
+            return None
+        layout = cls(folder.parents[2], folder.parents[1].name)
+        return (layout, folder.name) if layout.calib(folder.name).is_file() else None
+
     def image(self, sequence: str, frame: int) -> Path:
         return self.frames_dir / "image_02" / sequence / f"{frame:06d}.png"
 
