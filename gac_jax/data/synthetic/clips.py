@@ -32,15 +32,15 @@ from gac_jax.data import files, kitti
 from gac_jax.data import kitti_tracking as tracking
 from gac_jax.data.cache import default_cache_dir
 from gac_jax.data.synthetic import calibration, drive
-from gac_jax.data.synthetic.scene import DEFAULT_COUNTS
-from gac_jax.data.synthetic.writer import (
-    SceneArguments,
+from gac_jax.data.synthetic.generated_dir import (
     check_target,
     finish_writing,
     png_bytes,
     run_jobs,
     start_writing,
 )
+from gac_jax.data.synthetic.scene import DEFAULT_COUNTS
+from gac_jax.data.synthetic.writer import SceneArguments
 
 FORMAT_VERSION = 1  # bump whenever the generated content changes (it keys idempotence)
 DONE = "clips.json"
