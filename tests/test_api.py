@@ -11,6 +11,7 @@ one named :class:`InputError` per kind of bad input.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import shutil
 import subprocess
@@ -232,21 +233,32 @@ def _data_root(workdir: Path) -> str:
     return json.loads((workdir / "config.json").read_text())["data"]["root"]
 
 
-def test_onnxruntime_gives_the_jax_lines(tiny_detect3d_workdir, frames, tmp_path):
+def test_exported_runtimes_give_the_jax_lines(tiny_detect3d_workdir, frames, tmp_path):
+    """ONNX Runtime (exporting on first use) and OpenVINO (reusing that export) give the
+    evaluation's result lines to their printed precision."""
     pytest.importorskip("onnxruntime", reason="deploy extra not installed")
     wd = tmp_path / "wd"  # the export is written into the workdir: a copy
     shutil.copytree(tiny_detect3d_workdir, wd, ignore=shutil.ignore_patterns("eval", "export"))
-    det = Detector3D.from_workdir(wd, runtime="onnxruntime", threads=1, batch_size=2)
-    assert (wd / "export" / "step2" / "model.onnx").is_file()
-    out, ref = tmp_path / "api", tmp_path / "ref"
-    out.mkdir()
-    ref.mkdir()
     images = [image for _, image, _ in frames]
     P2s = [P2 for _, _, P2 in frames]
-    for (fid, _, _), got in zip(frames, det.predict_batch(images, P2s), strict=True):
-        (out / f"{fid}.txt").write_text("".join(f"{line}\n" for line in got.to_kitti_lines()))
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    for fid, _, _ in frames:
         shutil.copy(wd / "results" / "step_2" / "data" / f"{fid}.txt", ref)
-    assert_same_results(out, ref)  # to the printed precision
+    runtimes = ["onnxruntime"]
+    if importlib.util.find_spec("openvino") is not None:
+        runtimes.append("openvino")
+    for runtime in runtimes:
+        det = Detector3D.from_workdir(wd, runtime=runtime, threads=1, batch_size=2)
+        assert (wd / "export" / "step2" / "model.onnx").is_file()
+        assert det.runtime == runtime and det.compile_s > 0
+        out = tmp_path / runtime
+        out.mkdir()
+        for (fid, _, _), got in zip(frames, det.predict_batch(images, P2s), strict=True):
+            (out / f"{fid}.txt").write_text("".join(f"{ln}\n" for ln in got.to_kitti_lines()))
+        assert_same_results(out, ref)  # to the printed precision
+        one = det.predict(images[0], P2s[0])
+        assert one.to_kitti_lines() == (out / f"{frames[0][0]}.txt").read_text().splitlines()
 
 
 # ----------------------------------------------------------------------------- depth
