@@ -310,3 +310,10 @@ def test_depth_equals_the_evaluation_pngs(depth_workdir, kitti_samples):
         net.predict(s["image"], s["P2"][:2])
     with pytest.raises(InputError, match="^step: "):
         DepthPredictor.from_workdir(depth_workdir, step=5)
+
+
+def test_a_workdir_of_the_other_task_is_named(depth_workdir, tiny_detect3d_workdir):
+    with pytest.raises(InputError, match="^workdir: .*not a detector run"):
+        Detector3D.from_workdir(depth_workdir)
+    with pytest.raises(InputError, match="^workdir: .*prior_mean.json"):
+        DepthPredictor.from_workdir(tiny_detect3d_workdir)

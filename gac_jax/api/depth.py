@@ -25,6 +25,7 @@ import ml_collections
 import numpy as np
 
 from gac_jax.api import runtime_args
+from gac_jax.api.batches import checked_prepared, padded_chunks
 from gac_jax.api.inputs import (
     InputError,
     check_positive_int,
@@ -151,17 +152,11 @@ class DepthPredictor:
         """The network on prepared images in chunks of ``batch_size`` (the last padded: one
         compiled shape), each map resampled to its original image grid: (H, W) float32 metres.
         Calls are serialised (a lock)."""
-        prepared = list(prepared)
-        if not prepared or not all(isinstance(p, PreparedDepthImage) for p in prepared):
-            raise InputError(
-                "prepared", "expected a non-empty list of DepthPredictor.prepare results"
-            )
+        prepared = checked_prepared(prepared, PreparedDepthImage, "DepthPredictor.prepare")
         out: list[np.ndarray] = []
         with self._lock:
-            for start in range(0, len(prepared), self.batch_size):
-                part = prepared[start : start + self.batch_size]
-                padded = part + [part[-1]] * (self.batch_size - len(part))
-                out.extend(self._predictor(collate([p.arrays for p in padded]))[: len(part)])
+            for part, n in padded_chunks(prepared, self.batch_size):
+                out.extend(self._predictor(collate([p.arrays for p in part]))[:n])
         return out
 
     def finish(

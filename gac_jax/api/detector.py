@@ -35,6 +35,7 @@ import ml_collections
 import numpy as np
 
 from gac_jax.api import runtime_args
+from gac_jax.api.batches import checked_prepared, padded_chunks
 from gac_jax.api.detections import Detections
 from gac_jax.api.inputs import (
     InputError,
@@ -172,6 +173,12 @@ class Detector3D:
         overrides = [] if score is None else [f"eval.score_threshold={score!r}"]
         with runtime_args.file_errors_as("workdir"):
             config = load_run_config(workdir, None, overrides)
+        if "anchors" not in config:
+            raise InputError(
+                "workdir",
+                f"{workdir / 'config.json'}: not a detector run (no anchors; a depth run's "
+                "workdir goes to DepthPredictor.from_workdir)",
+            )
         try:
             detector = load_detector(workdir, config, step=step, dtype=_dtype(runtime, precision))
         except ValueError as e:  # KittiFormatError: a missing step or an unfitting checkpoint
@@ -307,18 +314,13 @@ class Detector3D:
           ``{key: (N, K, ...) numpy}``: the candidates of
           :func:`gac_jax.detection.inference.make_predict_fn` for the N images, in order.
         """
-        prepared = list(prepared)
-        if not prepared or not all(isinstance(p, PreparedImage) for p in prepared):
-            raise InputError("prepared", "expected a non-empty list of Detector3D.prepare results")
+        prepared = checked_prepared(prepared, PreparedImage, "Detector3D.prepare")
         chunks = []
         with self._lock:
-            for start in range(0, len(prepared), self.batch_size):
-                part = prepared[start : start + self.batch_size]
-                n = len(part)
-                padded = part + [part[-1]] * (self.batch_size - n)
-                images = np.stack([p.image for p in padded])
-                P2 = np.stack([p.P2 for p in padded])
-                planes = np.stack([p.plane for p in padded])
+            for part, n in padded_chunks(prepared, self.batch_size):
+                images = np.stack([p.image for p in part])
+                P2 = np.stack([p.P2 for p in part])
+                planes = np.stack([p.plane for p in part])
                 out = self._predict(self._variables, images, P2, planes)
                 chunks.append({k: np.asarray(v)[:n] for k, v in out.items()})
         return {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
