@@ -16,9 +16,11 @@ import json
 import shutil
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -97,6 +99,21 @@ def test_predict_gives_the_evaluation_result_lines(detector, frames, tiny_detect
     assert staged.to_kitti_lines() == reference_lines(tiny_detect3d_workdir, frames[0][0])
     # one compiled shape for every image size and batch length seen above
     assert detector._predict._cache_size() == 1
+
+
+def test_stages_from_threads_give_the_serial_results(detector, frames):
+    """prepare and finish on a thread pool (as a video pipeline runs them), infer meanwhile
+    from two threads: the results of serial predict calls."""
+    serial = [detector.predict(image, P2).to_kitti_lines() for _, image, P2 in frames]
+    with ThreadPoolExecutor(3) as pool:
+        prepared = list(pool.map(lambda f: detector.prepare(f[1], f[2]), frames))
+        halves = [prepared[:2], prepared[2:]]
+        raws = list(pool.map(detector.infer, halves))
+        finished = pool.map(
+            lambda hr: detector.finish(hr[1], hr[0]), zip(halves, raws, strict=True)
+        )
+        got = [d.to_kitti_lines() for part in finished for d in part]
+    assert got == serial
 
 
 def test_other_image_sizes_come_back_in_their_own_pixels(detector, frames):
@@ -211,6 +228,9 @@ def test_score_threshold_and_converted_weights(tiny_detect3d_workdir, frames, tm
     from tests.conftest import TINY_DETECT3D_OVERRIDES
 
     fid, image, P2 = frames[0]
+    with pytest.warns(UserWarning, match="XLA:CPU has no native bf16"):
+        bf16 = Detector3D.from_workdir(tiny_detect3d_workdir, precision="bf16")
+    assert bf16._detector.model.dtype == jnp.bfloat16 and bf16.precision == "bf16"
     det = Detector3D.from_workdir(tiny_detect3d_workdir, score_threshold=0.5)
     kept = det.predict(image, P2)
     assert det.config.eval.score_threshold == 0.5 and np.all(kept.scores > 0.5)
