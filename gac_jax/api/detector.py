@@ -35,16 +35,14 @@ import ml_collections
 import numpy as np
 
 from gac_jax.api import runtime_args
-from gac_jax.api.batches import checked_prepared, padded_chunks
 from gac_jax.api.detections import Detections
 from gac_jax.api.inputs import (
     InputError,
-    check_positive_int,
     check_score_threshold,
     check_step,
     image_sample,
-    prepare_batch,
 )
+from gac_jax.api.stages import StagedModel, checked_prepared, padded_chunks
 from gac_jax.builders.detect3d import eval_transform, filter_options
 from gac_jax.config import ConfigError, apply_overrides
 from gac_jax.detection.inference import candidates_to_objects, make_predict_fn
@@ -74,7 +72,7 @@ class PreparedImage:
     cut_off: bool
 
 
-class Detector3D:
+class Detector3D(StagedModel):
     """A trained GAC detector; build it with :meth:`from_workdir` or :meth:`from_weights`.
 
     Attributes:
@@ -168,8 +166,7 @@ class Detector3D:
         workdir = runtime_args.check_workdir(workdir)
         step = check_step(step)
         score = check_score_threshold(score_threshold)
-        runtime_args.check_runtime_choice(runtime, precision, threads)
-        batch_size = check_positive_int(batch_size, "batch_size")
+        options = runtime_args.model_options(runtime, precision, threads, batch_size, export_dir)
         overrides = [] if score is None else [f"eval.score_threshold={score!r}"]
         with runtime_args.file_errors_as("workdir"):
             config = load_run_config(workdir, None, overrides)
@@ -184,15 +181,7 @@ class Detector3D:
         except ValueError as e:  # KittiFormatError: a missing step or an unfitting checkpoint
             argument = "step" if step is not None and "no checkpoint step" in str(e) else "workdir"
             raise InputError(argument, str(e)) from None
-        return cls(
-            detector,
-            workdir,
-            runtime,
-            precision,
-            threads=threads,
-            batch_size=batch_size,
-            export_dir=export_dir,
-        )
+        return cls(detector, workdir, **options)
 
     @classmethod
     def from_weights(
@@ -223,8 +212,7 @@ class Detector3D:
             workdir = weights.parent.parent if weights.parent.name == "checkpoints" else weights
         workdir = Path(workdir)
         score = check_score_threshold(score_threshold)
-        runtime_args.check_runtime_choice(runtime, precision, threads)
-        batch_size = check_positive_int(batch_size, "batch_size")
+        options = runtime_args.model_options(runtime, precision, threads, batch_size, export_dir)
         overrides = [] if score is None else [f"eval.score_threshold={score!r}"]
         if isinstance(config, ml_collections.ConfigDict):
             config = copy.deepcopy(config)
@@ -241,15 +229,7 @@ class Detector3D:
             detector = load_detector(
                 workdir, config, checkpoint=weights, dtype=_dtype(runtime, precision)
             )
-        return cls(
-            detector,
-            workdir,
-            runtime,
-            precision,
-            threads=threads,
-            batch_size=batch_size,
-            export_dir=export_dir,
-        )
+        return cls(detector, workdir, **options)
 
     # ------------------------------------------------------------------ description
 
@@ -270,11 +250,7 @@ class Detector3D:
         return self._detector.step
 
     def __repr__(self) -> str:
-        h, w = self.input_size
-        return (
-            f"Detector3D({self.weights}; {', '.join(self.class_names)}; input {h}x{w}; "
-            f"{self.runtime} {self.precision}, batch {self.batch_size})"
-        )
+        return f"Detector3D({self.weights}; {', '.join(self.class_names)}; {self._describe()})"
 
     # ------------------------------------------------------------------ stages
 
@@ -348,23 +324,6 @@ class Detector3D:
             )
             out.append(Detections.from_kitti_objects(objects))
         return out
-
-    # ------------------------------------------------------------------ one call
-
-    def predict(self, image: np.ndarray, P2: Any, plane: Any = None) -> Detections:
-        """The detections of one image (arguments as :meth:`prepare`)."""
-        prepared = [self.prepare(image, P2, plane)]
-        return self.finish(self.infer(prepared), prepared)[0]
-
-    def predict_batch(
-        self, images: Sequence[np.ndarray], P2s: Sequence[Any], planes: Sequence[Any] | None = None
-    ) -> list[Detections]:
-        """The detections of several images (any sizes), one :class:`Detections` per image;
-        the same as :meth:`predict` image by image."""
-        prepared = prepare_batch(self.prepare, images, P2s, planes)
-        if not prepared:
-            return []
-        return self.finish(self.infer(prepared), prepared)
 
 
 def _dtype(runtime: str, precision: str):
