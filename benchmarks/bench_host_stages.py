@@ -113,22 +113,32 @@ class Worker:
         self.config, self.loop_network_s = config, loop_network_ms / 1e3
         filter_options, use_filter = builders.filter_options(config), config.anchors.filter
         self.select = jax.jit(
-            lambda outputs, P2: inference.select_candidates(
-                outputs, constants, P2, top_k, filter_options, use_ground_filter=use_filter
+            lambda outputs, P2, plane: inference.select_candidates(
+                outputs,
+                constants,
+                P2,
+                top_k,
+                filter_options,
+                use_ground_filter=use_filter,
+                plane=plane,
             )
         )
-        network = jax.jit(lambda v, x, P: self.model.apply(v, x, P, train=False))
+        network = jax.jit(lambda v, x, P, g: self.model.apply(v, x, P, train=False, plane=g))
         self.outputs, self.network_ms = [], []
         for i in range(len(self.source)):  # the network once per frame (after a warm-up)
             batch = self._batch(self.transform(self.source[i]))
             if i == 0:
-                jax.block_until_ready(network(self.variables, batch["image"], batch["P2"]))
+                jax.block_until_ready(network(self.variables, *self._inputs(batch)))
             t0 = time.perf_counter()
-            out = jax.block_until_ready(network(self.variables, batch["image"], batch["P2"]))
+            out = jax.block_until_ready(network(self.variables, *self._inputs(batch)))
             self.network_ms.append(1e3 * (time.perf_counter() - t0))
             self.outputs.append(jax.device_get(out))
-        self.select(self.outputs[0], batch["P2"])  # compile
+        self.select(self.outputs[0], batch["P2"], batch["plane"])  # compile
         self.round = 0
+
+    @staticmethod
+    def _inputs(batch):
+        return batch["image"], batch["P2"], batch["plane"]
 
     def _batch(self, sample):
         from gac_jax.data.loader import collate
@@ -163,7 +173,7 @@ class Worker:
                 t1 = time.perf_counter()
                 batch = self._batch(self.transform(sample))
                 t2 = time.perf_counter()
-                cand = self.select(self.outputs[i], batch["P2"])
+                cand = self.select(self.outputs[i], batch["P2"], batch["plane"])
                 cand = {k: np.asarray(v) for k, v in cand.items()}
                 t3 = time.perf_counter()
                 (objects,) = inference.postprocess(cand, batch, self.classes, self.post)
@@ -197,9 +207,9 @@ class Worker:
         )  # fmt: skip
         replay = iter(self.outputs)
 
-        def predict(variables, images, P2):  # the network's time, without its CPU work
+        def predict(variables, images, P2, plane):  # the network's time, without its CPU work
             time.sleep(self.loop_network_s)
-            return self.select(next(replay), P2)
+            return self.select(next(replay), P2, plane)
 
         evaluator.predict = predict
         t0 = time.perf_counter()
