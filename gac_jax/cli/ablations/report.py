@@ -372,8 +372,8 @@ def render(out: Path, plan: dict | None = None) -> str:
     plan = read_plan(out) if plan is None else plan
     parts = [
         "# Ablations with seed spread (generated)\n",
-        f"Written by `{RUNNER}` (see [results](results.md#the-ablation-runner)) from the runs it finished; do "
-        "not edit by hand. Rerun a section's command from the repository root to finish its "
+        f"Written by `{RUNNER}` (see [results](results.md#the-ablation-runner)) from the runs "
+        "it finished; do not edit by hand. Rerun a section's command from the repository root to finish its "
         "missing seeds (finished runs are skipped, interrupted ones resume) and to rewrite this "
         "file; `--report-only --out DIR` rewrites it from what exists. Run folders are written "
         "relative to the repository (`workdirs/<name>` for a folder outside it).\n",
