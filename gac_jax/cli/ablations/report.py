@@ -373,10 +373,11 @@ def render(out: Path, plan: dict | None = None) -> str:
     parts = [
         "# Ablations with seed spread (generated)\n",
         f"Written by `{RUNNER}` (see [results](results.md#the-ablation-runner)) from the runs "
-        "it finished; do not edit by hand. Rerun a section's command from the repository root to finish its "
-        "missing seeds (finished runs are skipped, interrupted ones resume) and to rewrite this "
-        "file; `--report-only --out DIR` rewrites it from what exists. Run folders are written "
-        "relative to the repository (`workdirs/<name>` for a folder outside it).\n",
+        "it finished; do not edit by hand. Rerun a section's command from the repository root "
+        "to finish its missing seeds (finished runs are skipped, interrupted ones resume) and "
+        "to rewrite this file; `--report-only --out DIR` rewrites it from what exists. Run "
+        "folders are written relative to the repository (`workdirs/<name>` for a folder "
+        "outside it).\n",
         "These are numbers **on the embedded generated dataset**, not KITTI: they say whether "
         "each design choice helps here and by more than the seed-to-seed spread; the paper's "
         "columns are its KITTI numbers, for the direction of each difference only. A run's "
