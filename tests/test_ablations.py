@@ -418,6 +418,9 @@ def test_committed_report_names_no_folder_of_the_machine():
     text = (REPO / "docs" / "ablations.md").read_text()
     assert not re.search(r"(^|[\s`(=])/[A-Za-z]", text, re.M), "an absolute path in the report"
     assert "python -m gac_jax.cli.ablations" in text and "benchmarks/ablation" not in text
+    # its header and rows are the generator's (the file was not edited by hand there)
+    fresh = _report_module().render(REPO / "workdirs" / "none", plan={})
+    assert text.startswith(fresh[: fresh.index("## Detection (paper Table 3)")])
 
 
 def test_runner_entry_point_help():
