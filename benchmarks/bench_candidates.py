@@ -1,7 +1,7 @@
 """Cost of the candidate cap: jitted predict (+ transfer) and host post-processing per top_k.
 
 Paper geometry (configs/detect3d_kitti.py: 288x1280, 46 080 anchors), made-up valid priors.
-``top_k`` 100 (the former KITTI default), 4096 (the new default) and None (every anchor).
+``top_k`` 100, 4096 (the KITTI config's cap) and None (every anchor).
 
 * selection: the network replaced by given outputs (decode + invalid-prior and ground
   masks + count + top_k + gather, and the device->host transfer of the candidates), batch 1

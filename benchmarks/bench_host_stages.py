@@ -1,9 +1,9 @@
-"""The detector's frame outside the network, per stage (issue 24, part 3), old code vs new.
+"""The detector's frame outside the network, per stage.
 
 For the paper config (configs/detect3d_kitti.py: ResNet-101, 288x1280) and the default
 config (configs/detect3d_default.py: half-width ResNet-18, 160x720), batch 1, random
-weights, on the real KITTI frames (the 13 labelled frames of ``../shared/data/kitti_samples``,
-else the 4 vendored ones of ``tests/data/kitti``), each frame is timed stage by stage:
+weights, on the real KITTI frames (the 13 labelled frames of ``../shared/data/kitti_samples``
+when present, else the 4 of ``tests/data/kitti``), each frame is timed stage by stage:
 
 * ``read``: the source's frame (image file + ``cv2`` PNG decode, calibration, label);
 * ``transform``: the test transform (crop top, float resize, crop/pad width, normalise) and
@@ -18,45 +18,18 @@ else the 4 vendored ones of ``tests/data/kitti``), each frame is timed stage by 
 ``host total`` is their sum without the network (the serial loop's non-network time).
 ``loop``: the evaluator's own loop (:meth:`DetectionEvaluator.predict_split`, result files
 written) with the network replaced by a stand-in that waits ``--loop-network-ms`` (default
-4 ms, the issue's AMX figure for the default detector) without using the CPU, as an
-accelerator would, and returns the recorded outputs: ``loop non-network`` is its wall time
-per frame minus that wait, so what overlapping reading/writing with the network saves
-shows there.
+4 ms, a fast accelerator's time for the default detector) without using the CPU, and returns
+the recorded outputs: ``loop non-network`` is its wall time per frame minus that wait, so
+what overlapping reading/writing with the network saves shows there.
 
 Settings as ``bench_runtimes.py``: score threshold 0 and ``top_k`` 100 (``--top-k``), so 100
-candidates go through NMS and hill-climbing, a crowded frame.
-
-``--baseline REV`` runs the same measurements on the code of git revision ``REV`` (extracted
-to a temporary folder) in a second worker process, the two workers taking turns round by
-round so that the machine's load hits both alike, and checks that both wrote the same result
-files. Reported: per-stage medians over frames and rounds, the machine and its load.
+candidates go through NMS and hill-climbing, a crowded frame. Each config runs in its own
+worker process; every round writes the result files again and the report says whether all
+rounds wrote the same files. Reported: per-stage medians over frames and rounds, the machine
+and its load. Figures: docs/performance.md.
 
     python benchmarks/bench_host_stages.py [--configs paper,default] [--rounds 5]
-        [--baseline REV] [--top-k 100] [--loop-network-ms 4] [--json OUT]
-
-Measured on the 2-core AMD EPYC (Zen 4: AVX512_BF16, no AMX) of this project, shared with
-other jobs (load average about 4 on its 2 cores; the two trees took turns), ``--baseline
-340f05a`` (the code before these changes), 13 frames x 5 rounds, top_k 100, median ms per
-frame, old -> new:
-
-======================  ==============  ==============
-stage                   paper           default
-======================  ==============  ==============
-read (PNG decode)       10.1 -> 10.3    10.0 -> 9.9
-transform               7.7 -> 3.6      2.8 -> 1.8
-decode (jitted)         0.9 -> 1.0      0.7 -> 0.7
-NMS                     0.46 -> 0.52    0.34 -> 0.39
-hill climbing           5.1 -> 3.6      5.4 -> 2.2
-post other              0.9 -> 1.0      0.9 -> 0.9
-write                   1.2 -> 1.1      1.4 -> 1.1
-host total (serial)     26.3 -> 21.0    24.3 -> 18.2
-loop non-network        25.1 -> 13.2    26.7 -> 13.0
-======================  ==============  ==============
-
-(71 and 44 detections per frame; result files identical across trees and rounds.) With
-``--top-k 4096`` (default config, 980 detections per frame): NMS 612 -> 47, hill climbing
-72 -> 25, write 13.6 -> 4.8, loop non-network 747 -> 101. Two other runs, loop non-network:
-paper 74.8 -> 41.9 and 46.7 -> 30.1, default 43.9 -> 27.0 and 42.2 -> 18.7 (loads 7-10, 2-5).
+        [--top-k 100] [--loop-network-ms 4] [--json OUT]
 """
 
 from __future__ import annotations
@@ -91,7 +64,7 @@ def kitti_root() -> Path:
 
 
 class Worker:
-    """One config on one code tree (``gac_jax`` imported from ``tree``): set up once, then
+    """One config (``gac_jax`` imported from ``tree``, the repository): set up once, then
     :meth:`run_round` times every frame (stages, then the evaluator loop)."""
 
     def __init__(self, tree: Path, name: str, top_k: int, loop_network_ms: float, tmp: Path):
@@ -140,22 +113,32 @@ class Worker:
         self.config, self.loop_network_s = config, loop_network_ms / 1e3
         filter_options, use_filter = builders.filter_options(config), config.anchors.filter
         self.select = jax.jit(
-            lambda outputs, P2: inference.select_candidates(
-                outputs, constants, P2, top_k, filter_options, use_ground_filter=use_filter
+            lambda outputs, P2, plane: inference.select_candidates(
+                outputs,
+                constants,
+                P2,
+                top_k,
+                filter_options,
+                use_ground_filter=use_filter,
+                plane=plane,
             )
         )
-        network = jax.jit(lambda v, x, P: self.model.apply(v, x, P, train=False))
+        network = jax.jit(lambda v, x, P, g: self.model.apply(v, x, P, train=False, plane=g))
         self.outputs, self.network_ms = [], []
         for i in range(len(self.source)):  # the network once per frame (after a warm-up)
             batch = self._batch(self.transform(self.source[i]))
             if i == 0:
-                jax.block_until_ready(network(self.variables, batch["image"], batch["P2"]))
+                jax.block_until_ready(network(self.variables, *self._inputs(batch)))
             t0 = time.perf_counter()
-            out = jax.block_until_ready(network(self.variables, batch["image"], batch["P2"]))
+            out = jax.block_until_ready(network(self.variables, *self._inputs(batch)))
             self.network_ms.append(1e3 * (time.perf_counter() - t0))
             self.outputs.append(jax.device_get(out))
-        self.select(self.outputs[0], batch["P2"])  # compile
+        self.select(self.outputs[0], batch["P2"], batch["plane"])  # compile
         self.round = 0
+
+    @staticmethod
+    def _inputs(batch):
+        return batch["image"], batch["P2"], batch["plane"]
 
     def _batch(self, sample):
         from gac_jax.data.loader import collate
@@ -190,7 +173,7 @@ class Worker:
                 t1 = time.perf_counter()
                 batch = self._batch(self.transform(sample))
                 t2 = time.perf_counter()
-                cand = self.select(self.outputs[i], batch["P2"])
+                cand = self.select(self.outputs[i], batch["P2"], batch["plane"])
                 cand = {k: np.asarray(v) for k, v in cand.items()}
                 t3 = time.perf_counter()
                 (objects,) = inference.postprocess(cand, batch, self.classes, self.post)
@@ -224,9 +207,9 @@ class Worker:
         )  # fmt: skip
         replay = iter(self.outputs)
 
-        def predict(variables, images, P2):  # the network's time, without its CPU work
+        def predict(variables, images, P2, plane):  # the network's time, without its CPU work
             time.sleep(self.loop_network_s)
-            return self.select(next(replay), P2)
+            return self.select(next(replay), P2, plane)
 
         evaluator.predict = predict
         t0 = time.perf_counter()
@@ -288,7 +271,6 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--configs", default="paper,default")
     p.add_argument("--rounds", type=int, default=5)
-    p.add_argument("--baseline", metavar="REV", help="git revision to compare with")
     p.add_argument("--top-k", type=int, default=100)
     p.add_argument("--loop-network-ms", type=float, default=4.0)
     p.add_argument("--json", type=Path)
@@ -302,37 +284,19 @@ def main(argv=None) -> int:
     info = describe_machine("numpy", "cv2")
     print(one_line(info), f"frames from {kitti_root()}", flush=True)
     report = {"machine": info, "configs": {}}
-    with tempfile.TemporaryDirectory(prefix="bench_host_") as tmp:
-        trees = {"new": REPO}
-        if args.baseline:
-            base = Path(tmp) / "baseline"
-            base.mkdir()
-            archive = subprocess.run(
-                ["git", "-C", str(REPO), "archive", args.baseline], check=True, capture_output=True
-            ).stdout
-            subprocess.run(["tar", "-x", "-C", str(base)], input=archive, check=True)
-            trees = {"old": base, "new": REPO}
-        for name in args.configs.split(","):
-            print(f"\n=== {name} ({CONFIGS[name]}), batch 1, top_k {args.top_k} ===", flush=True)
-            procs = {label: start_worker(tree, name, args) for label, tree in trees.items()}
-            rounds = {label: [] for label in trees}
-            digests = {label: set() for label in trees}
-            for r in range(args.rounds):  # take turns, the order alternating by round
-                labels = list(trees) if r % 2 == 0 else list(trees)[::-1]
-                for label in labels:
-                    result = ask(procs[label])
-                    rounds[label].append(result)
-                    digests[label].add(result["results_sha256"])
-            for proc in procs.values():
-                proc.stdin.close()
-                proc.wait()
-            summary = {label: summarise(rs) for label, rs in rounds.items()}
-            same = len(set().union(*digests.values())) == 1
-            report["configs"][name] = {"summary": summary, "identical_results": same}
-            print(f"  {'stage (median ms/frame)':26s}" + "".join(f"{k:>10s}" for k in trees))
-            for key in summary["new"]:
-                print(f"  {key:26s}" + "".join(f"{summary[k][key]:10.2f}" for k in trees))
-            print(f"  result files identical across trees and rounds: {'yes' if same else 'NO'}")
+    for name in args.configs.split(","):
+        print(f"\n=== {name} ({CONFIGS[name]}), batch 1, top_k {args.top_k} ===", flush=True)
+        proc = start_worker(REPO, name, args)
+        rounds = [ask(proc) for _ in range(args.rounds)]
+        proc.stdin.close()
+        proc.wait()
+        summary = summarise(rounds)
+        same = len({r["results_sha256"] for r in rounds}) == 1
+        report["configs"][name] = {"summary": summary, "identical_results": same}
+        print(f"  {'stage (median ms/frame)':26s}{'median':>10s}")
+        for key, value in summary.items():
+            print(f"  {key:26s}{value:10.2f}")
+        print(f"  result files identical across rounds: {'yes' if same else 'NO'}")
     info["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
     print(f"\nload average (1 min) at the end: {info['load_avg_1min_end']}")
     if args.json:

@@ -9,7 +9,7 @@ on the generated val split, printing the KITTI AP table. Variants (comma-separat
 ``configs/detect3d_kitti.py``: ``baseline`` (= no variant), ``nofilter`` (no ground-plane
 anchor filtering), ``ohem`` (no filter; the easiest half of the negatives left out of the
 loss), ``conv`` (GAC replaced by a plain conv), ``disparity`` (disparity-conditioned conv),
-``deformable`` (modulated deformable conv v2). ``benchmarks/ablation_table.py`` runs them all
+``deformable`` (modulated deformable conv v2). ``python -m gac_jax.cli.ablations`` runs them all
 over several seeds (docs/ablations.md). ``multirig``: the embedded dataset of eight camera
 rigs (heights 1.2-2.4 m, pitch -6..+7 deg, other intrinsics and image sizes; two rigs held
 out into split ``val_heldout``, evaluate with ``evaluate.py --workdir W --split val_heldout``);

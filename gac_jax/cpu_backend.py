@@ -12,7 +12,9 @@ Flags only affect the CPU backend. A user's own ``XLA_FLAGS`` entry for the same
 from __future__ import annotations
 
 import os
+import platform
 from collections.abc import MutableMapping
+from pathlib import Path
 
 DEFAULT_FLAGS = ("--xla_cpu_experimental_ynn_fusion_type=",)
 
@@ -32,3 +34,15 @@ def apply_default_xla_flags(env: MutableMapping[str, str] | None = None) -> str:
             flags = f"{flags} {flag}".strip()
     env["XLA_FLAGS"] = flags
     return flags
+
+
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``; else what ``platform`` knows), for the notes
+    that say which machine measured a figure."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown CPU"

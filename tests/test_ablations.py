@@ -4,6 +4,9 @@ new variant, the deformable regression block against a plain conv, the converter
 from __future__ import annotations
 
 import json
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -153,11 +156,9 @@ def test_converter_refuses_the_new_heads():
 
 
 def _report_module():
-    import importlib
-    import sys
+    from gac_jax.cli.ablations import report
 
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    return importlib.import_module("ablation_report")
+    return report
 
 
 def test_paper_numbers_in_the_report_match_the_paper_source():
@@ -372,10 +373,8 @@ def test_extra_split_tables_and_named_sections(tmp_path):
 
 
 def test_runner_plan_keeps_extra_splits_and_refuses_another_section(tmp_path, capsys):
-    _report_module()  # puts benchmarks/ on sys.path
-    import importlib
+    from gac_jax.cli.ablations import runner as table
 
-    table = importlib.import_module("ablation_table")
     entry = {"config": "c.py:multirig", "overrides": [], "rows": ["baseline"], "seeds": [0]}
     entry |= {"eval_splits": ["val_heldout"], "section": "multirig", "title": "T"}
     table.update_plan(tmp_path, "detect3d", entry)
@@ -387,3 +386,51 @@ def test_runner_plan_keeps_extra_splits_and_refuses_another_section(tmp_path, ca
     with pytest.raises(SystemExit):
         table.update_plan(tmp_path, "detect3d", entry | {"section": "other"})
     assert "section=" in capsys.readouterr().err
+
+
+def test_report_names_no_folder_of_the_machine(tmp_path):
+    """Run folders: relative to the repository inside it, ``workdirs/<name>`` outside it, in
+    the section text and in the command the report prints; never an absolute path."""
+    rep = _report_module()
+    assert rep.shown(rep.REPO / "workdirs" / "abl") == "workdirs/abl"
+    assert rep.shown(tmp_path / "runs" / "abl_multirig") == "workdirs/abl_multirig"
+    assert rep.shown(tmp_path / "x" / ".." / "abl", repo=tmp_path) == "abl"
+    out = tmp_path / "elsewhere" / "abl_crossrig"
+    names = ("3D@0.7", "3D@0.5", "BEV@0.5", "2D@0.7")
+    _fake_run(out / "detect3d" / "baseline" / "seed_0", dict(zip(names, (1, 2, 3, 4), strict=True)))
+    plan = {"config": "configs/detect3d_default.py:multirig,kittirig", "rows": ["baseline"]}
+    plan |= {"seeds": [0], "eval_splits": [], "section": "crossrig", "title": "Cross-rig"}
+    # a plan.json written by an older runner: its stored command names the absolute folder
+    plan |= {"overrides": ["train.num_epochs=30"], "command": f"python x.py --out {out}"}
+    (out / "plan.json").write_text(json.dumps({"detect3d": plan}))
+    text = rep.compose_report("", out, "crossrig")
+    assert str(tmp_path) not in text and "/elsewhere" not in text
+    assert "Runs in `workdirs/abl_crossrig/detect3d`" in text
+    assert (
+        "python -m gac_jax.cli.ablations --task detect3d --rows baseline --seeds 0 --out "
+        "workdirs/abl_crossrig --config configs/detect3d_default.py:multirig,kittirig "
+        "--section crossrig --title Cross-rig train.num_epochs=30" in text
+    )
+    assert not re.search(r"(^|[\s`(])/(work|tmp|home|root|Users)/", text, re.M)
+
+
+def test_committed_report_names_no_folder_of_the_machine():
+    text = (REPO / "docs" / "ablations.md").read_text()
+    assert not re.search(r"(^|[\s`(=])/[A-Za-z]", text, re.M), "an absolute path in the report"
+    assert "python -m gac_jax.cli.ablations" in text and "benchmarks/ablation" not in text
+    # its header and rows are the generator's (the file was not edited by hand there)
+    fresh = _report_module().render(REPO / "workdirs" / "none", plan={})
+    assert text.startswith(fresh[: fresh.index("## Detection (paper Table 3)")])
+
+
+def test_runner_entry_point_help():
+    """``python -m gac_jax.cli.ablations`` is the documented command."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "gac_jax.cli.ablations", "--help"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "python -m gac_jax.cli.ablations --rows baseline" in proc.stdout

@@ -1,20 +1,22 @@
-"""Runs the paper's ablations over several seeds and writes docs/ablations.md.
+"""The ablation runner: trains each row of an ablation over several seeds, writes docs/ablations.md.
+
+Run from the repository root (it starts ``train.py`` and ``evaluate.py`` of the checkout)::
 
     # detection, the six rows of the paper's Table 3, three seeds each
-    python benchmarks/ablation_table.py --rows baseline,nofilter,ohem,conv,disparity,deformable \\
+    python -m gac_jax.cli.ablations --rows baseline,nofilter,ohem,conv,disparity,deformable \\
         --seeds 0,1,2 --out workdirs/ablations
     # depth: Base U-Net vs GAC U-Net
-    python benchmarks/ablation_table.py --task depth --rows base,gac --seeds 0,1 \\
+    python -m gac_jax.cli.ablations --task depth --rows base,gac --seeds 0,1 \\
         --out workdirs/ablations
     # the report alone, from whatever exists
-    python benchmarks/ablation_table.py --report-only --out workdirs/ablations
+    python -m gac_jax.cli.ablations --report-only --out workdirs/ablations
     # multi-rig data: GAC with the frames' planes vs the fixed 1.65 m plane vs a plain conv,
     # also on the held-out rigs, as its own section of the report
-    python benchmarks/ablation_table.py --rows baseline,conv,fixedplane --seeds 0,1,2 \\
+    python -m gac_jax.cli.ablations --rows baseline,conv,fixedplane --seeds 0,1,2 \\
         --config configs/detect3d_default.py:multirig --eval-splits val_heldout \\
         --section multirig --out workdirs/ablations_multirig
     # the same for depth: Base U-Net vs GAC U-Net with the frames' planes vs the fixed plane
-    python benchmarks/ablation_table.py --task depth --rows base,gac,fixedplane --seeds 0,1 \\
+    python -m gac_jax.cli.ablations --task depth --rows base,gac,fixedplane --seeds 0,1 \\
         --config configs/depth_default.py:multirig --eval-splits val_heldout \\
         --section multirig --out workdirs/ablations_multirig
 
@@ -29,7 +31,8 @@ other workdir is handed to ``train.py`` again, which resumes
 from its last checkpoint (and redoes only the unwritten result files of an interrupted final
 evaluation). ``OUT/plan.json`` records each task's config, overrides, rows and seeds: a later
 call with another config or other overrides for the same task is refused, so one table never
-mixes two set-ups. The report (see ``ablation_report.py``) reads only what the trainer wrote
+mixes two set-ups. The report (:mod:`gac_jax.cli.ablations.report`) reads only what the
+trainer wrote
 and lists unfinished seeds as such.
 
 Rows: detection ``baseline`` (the GAC model), ``nofilter``, ``ohem``, ``conv``, ``disparity``,
@@ -52,24 +55,21 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from ablation_report import (  # noqa: E402  (benchmarks/ on sys.path)
+from gac_jax.cli.ablations.report import (
     DONE_MARKER,
     FAILED_MARKER,
     PLAN,
+    REPO,
     TASKS,
     compose_report,
     eval_file,
     last_train_step,
     read_plan,
+    run_command,
     run_dir,
 )
-from machine_info import cpu_model  # noqa: E402
-
-from gac_jax.data.files import atomic_write  # noqa: E402
+from gac_jax.cpu_backend import cpu_model
+from gac_jax.data.files import atomic_write
 
 DEFAULT_CONFIGS = {"detect3d": "configs/detect3d_default.py", "depth": "configs/depth_default.py"}
 
@@ -106,21 +106,6 @@ def config_spec(config: str, variant: str) -> str:
     return f"{path}:{','.join(parts)}" if parts else path
 
 
-def runner_command(task: str, entry: dict, out: Path) -> str:
-    """The command that (re)runs every row and seed of a plan entry."""
-    if out.is_relative_to(REPO):
-        out = out.relative_to(REPO)
-    parts = ["python", "benchmarks/ablation_table.py", "--task", task]
-    parts += ["--rows", ",".join(entry["rows"]), "--seeds", ",".join(map(str, entry["seeds"]))]
-    parts += ["--out", str(out), "--config", entry["config"]]
-    if entry.get("eval_splits"):
-        parts += ["--eval-splits", ",".join(entry["eval_splits"])]
-    for key in ("section", "title"):
-        if entry.get(key):
-            parts += [f"--{key}", entry[key]]
-    return shlex.join([*parts, *entry["overrides"]])
-
-
 def update_plan(out: Path, task: str, entry: dict) -> dict:
     """Adds the requested rows/seeds to ``OUT/plan.json``; refuses a different set-up."""
     path = out / PLAN
@@ -143,7 +128,7 @@ def update_plan(out: Path, task: str, entry: dict) -> dict:
             eval_splits=splits + [s for s in entry["eval_splits"] if s not in splits],
             title=entry.get("title") or old.get("title"),
         )
-    entry["command"] = runner_command(task, entry, out)
+    entry["command"] = run_command(task, entry, out)
     plan[task] = entry
     out.mkdir(parents=True, exist_ok=True)
     with atomic_write(path) as f:
@@ -225,6 +210,13 @@ def _previous_wall(workdir: Path) -> float:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if not (REPO / "train.py").is_file():
+        print(
+            f"error: {REPO / 'train.py'}: not found; the ablation runner trains with the "
+            "repository's train.py and evaluate.py, so it runs from a checkout of gac-jax",
+            file=sys.stderr,
+        )
+        return 2
     task = TASKS[args.task]
     rows = args.rows.split(",") if args.rows else list(task.rows)
     unknown = [r for r in rows if r not in task.variants]

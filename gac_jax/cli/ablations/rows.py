@@ -1,7 +1,7 @@
 """What the ablation report says about its rows: the paper's numbers and each row's change.
 
-Data only (no JAX), shared by ``ablation_report.py`` (the tables) and the tests (which check
-the paper numbers against the paper's source).
+Data only (no JAX), shared by :mod:`gac_jax.cli.ablations.report` (the tables) and the tests
+(which check the paper numbers against the paper's source).
 """
 
 from __future__ import annotations

@@ -1,9 +1,13 @@
-"""Reads the ablation runs of ``benchmarks/ablation_table.py`` and writes docs/ablations.md.
+"""Reads the runs of the ablation runner (``python -m gac_jax.cli.ablations``) and writes
+docs/ablations.md.
 
 Pure file reading and arithmetic (no JAX): every number in the report comes from a metrics
 file the trainer wrote (``WORKDIR/results/step_N/metrics.json``, N the run's last step) of
 a run the runner saw finish (``WORKDIR/ablation_run.json``). Runs that are missing,
-interrupted or failed are listed as such and left out of the statistics.
+interrupted or failed are listed as such and left out of the statistics. The report names no
+folder of the machine that ran it: a run folder inside the repository is written relative to
+it, one outside as ``workdirs/<its name>`` (:func:`shown`), so the command it prints reruns
+the section from any checkout.
 """
 
 from __future__ import annotations
@@ -11,18 +15,18 @@ from __future__ import annotations
 import json
 import math
 import re
+import shlex
 import statistics
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 DONE_MARKER = "ablation_run.json"
 FAILED_MARKER = "ablation_failed.json"
 PLAN = "plan.json"
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+REPO = Path(__file__).resolve().parents[3]
+RUNNER = "python -m gac_jax.cli.ablations"
 
-from ablation_rows import (  # noqa: E402  (benchmarks/ on sys.path)
+from gac_jax.cli.ablations.rows import (  # noqa: E402  (after the constants it shares)
     PAPER_DEPTH,
     PAPER_DEPTH_NAMES,
     PAPER_TABLE3,
@@ -279,10 +283,9 @@ def task_section(task: Task, out: Path, plan: dict) -> str:
     lines.append(
         f"Config `{plan['config']}` (row = variant), overrides: `{extra}`; seeds "
         f"{', '.join(map(str, seeds))} (the seed sets the model init, dropout and the data "
-        f"order; the generated dataset is the same for all). Runs in `{shown(out / task.name)}`:\n"
+        f"order; the generated dataset is the same for all). Runs in `{shown(out)}/{task.name}`:\n"
     )
-    if plan.get("command"):
-        lines.append(f"```bash\n{plan['command']}\n```\n")
+    lines.append(f"```bash\n{run_command(task.name, plan, out)}\n```\n")
     for split in (None, *plan.get("eval_splits", [])):
         lines.extend(_split_tables(task, out, rows, seeds, split))
     return "\n".join(lines)
@@ -334,10 +337,29 @@ def _split_tables(task: Task, out: Path, rows, seeds, split: str | None) -> list
     return lines
 
 
-def shown(path: Path) -> str:
-    """``path`` relative to the repository when it is inside it (stable across checkouts)."""
+def shown(path: Path, repo: Path = REPO) -> str:
+    """How the report writes a run folder: relative to the repository when ``path`` is inside
+    it, else ``workdirs/<folder name>`` (where the printed command puts the runs on another
+    checkout); never an absolute path of the machine that ran them."""
     path = Path(path).resolve()
-    return str(path.relative_to(REPO)) if path.is_relative_to(REPO) else str(path)
+    repo = Path(repo).resolve()
+    if path.is_relative_to(repo):
+        return path.relative_to(repo).as_posix() or "."
+    return f"workdirs/{path.name}"
+
+
+def run_command(task: str, entry: dict, out: Path) -> str:
+    """The command that (re)runs every row and seed of a plan entry, ``--out`` as
+    :func:`shown` writes it."""
+    parts = [*shlex.split(RUNNER), "--task", task]
+    parts += ["--rows", ",".join(entry["rows"]), "--seeds", ",".join(map(str, entry["seeds"]))]
+    parts += ["--out", shown(out), "--config", entry["config"]]
+    if entry.get("eval_splits"):
+        parts += ["--eval-splits", ",".join(entry["eval_splits"])]
+    for key in ("section", "title"):
+        if entry.get(key):
+            parts += [f"--{key}", entry[key]]
+    return shlex.join([*parts, *entry["overrides"]])
 
 
 def read_plan(out: Path) -> dict:
@@ -350,16 +372,18 @@ def render(out: Path, plan: dict | None = None) -> str:
     plan = read_plan(out) if plan is None else plan
     parts = [
         "# Ablations with seed spread (generated)\n",
-        "Written by `benchmarks/ablation_table.py` from the runs it finished; do not edit by "
-        "hand. Rerun a section's command to finish its missing seeds (finished runs are "
-        "skipped, interrupted ones resume) and to rewrite this file; `--report-only --out DIR` "
-        "rewrites it from what exists.\n",
+        f"Written by `{RUNNER}` (see [results](results.md#the-ablation-runner)) from the runs "
+        "it finished; do not edit by hand. Rerun a section's command from the repository root "
+        "to finish its missing seeds (finished runs are skipped, interrupted ones resume) and "
+        "to rewrite this file; `--report-only --out DIR` rewrites it from what exists. Run "
+        "folders are written relative to the repository (`workdirs/<name>` for a folder "
+        "outside it).\n",
         "These are numbers **on the embedded generated dataset**, not KITTI: they say whether "
         "each design choice helps here and by more than the seed-to-seed spread; the paper's "
         "columns are its KITTI numbers, for the direction of each difference only. A run's "
         "note gives its training wall time (all attempts, including any time the machine "
         "spent on other jobs, e.g. a detection and a depth run side by side: not a speed "
-        "measurement; see `benchmarks/bench_train_step.py` for that) and CPU.\n",
+        "measurement; see [performance](performance.md) for that) and CPU.\n",
         VARIANTS_TEXT,
     ]
     for name, task in TASKS.items():
@@ -370,7 +394,7 @@ def render(out: Path, plan: dict | None = None) -> str:
             parts.append(
                 f"## {TITLES[name]}\n\nNot run yet (no `{name}` runs in `{shown(out)}`). "
                 "Command:\n\n"
-                f"```bash\npython benchmarks/ablation_table.py --task {name} --rows {rows} "
+                f"```bash\n{RUNNER} --task {name} --rows {rows} "
                 f"--seeds 0,1,2 --out workdirs/ablations\n```\n"
             )
     return "\n".join(parts)
@@ -378,8 +402,8 @@ def render(out: Path, plan: dict | None = None) -> str:
 
 def _section_marks(name: str) -> tuple[str, str]:
     return (
-        f"<!-- ablation section {name}: written by benchmarks/ablation_table.py --section "
-        f"{name}; do not edit by hand -->",
+        f"<!-- ablation section {name}: written by {RUNNER} --section {name}; do not edit "
+        "by hand -->",
         f"<!-- end of ablation section {name} -->",
     )
 
