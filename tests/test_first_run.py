@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -71,15 +72,29 @@ def test_first_run_generates_trains_and_evaluates(task, tmp_path):
     )
     assert printed in out, out[-3000:]
     (root,) = cache.iterdir()  # the embedded dataset, generated complete into the empty cache
+    # it talks: what it generates, where and about how long, then a plain line every ~10 %
+    # (a pipe, not a terminal: no bar)
+    assert re.search(
+        rf"generating the embedded dataset \(\d+ frames, .*\) into {re.escape(str(root))}: about ",
+        out,
+    ), out[:3000]
+    progress = re.findall(r"^synthetic KITTI: (\d+)/(\d+) frames \((\d+)%\)", out, re.M)
+    assert progress and progress[-1][2] == "100" and len(progress) <= 10, out[:3000]
+    if task == "detect3d":
+        assert "computing anchor priors from the " in out, out[:3000]
+        assert re.search(r"^anchor priors: \d+/\d+ frames \(100%\)", out, re.M), out[:3000]
     assert (root / "synthetic.json").exists()
     assert not list(root.glob(".synthetic_in_progress*"))
     num_val = len((root / "ImageSets" / "val.txt").read_text().split())
+    num_frames = len((root / "ImageSets" / "trainval.txt").read_text().split())
     rows = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
     assert [r for r in rows if r["kind"] == "eval"], "no evaluation row at the end of the run"
 
     args = ["evaluate.py", "--task", task, "--workdir", str(workdir), "--json", "eval.json"]
     out = run([*args[:-1], str(tmp_path / "eval.json")], cache)
     assert printed in out, out[-3000:]
+    assert f"reusing the embedded dataset ({num_frames} frames) in {root}" in out, out[:3000]
+    assert "generating the embedded dataset" not in out and "anchor priors:" not in out
     assert json.loads((tmp_path / "eval.json").read_text())
     if task == "detect3d":
         assert len(list((workdir / "results").rglob("*.txt"))) >= num_val

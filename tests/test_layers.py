@@ -3,7 +3,7 @@
 The order (README, "What is where"), lowest first; a module may import from its own layer and
 the layers below it:
 
-    base        geometry, cpu_backend
+    base        geometry, cpu_backend, progress
     data        data/, config
     paper       detection/, depth/, models/
     services    evaluation/ (scoring), training/ (run plumbing)
@@ -25,7 +25,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 LAYERS = (
-    ("base", ("gac_jax.geometry", "gac_jax.cpu_backend")),
+    ("base", ("gac_jax.geometry", "gac_jax.cpu_backend", "gac_jax.progress")),
     ("data", ("gac_jax.data", "gac_jax.config")),
     ("paper", ("gac_jax.detection", "gac_jax.depth", "gac_jax.models")),
     ("services", ("gac_jax.evaluation", "gac_jax.training")),
@@ -164,7 +164,7 @@ def test_no_import_runs_from_a_lower_layer_to_a_higher_one():
 
 def test_the_package_root_holds_only_the_base_modules_and_config():
     root = sorted(p.name for p in (REPO / "gac_jax").glob("*.py"))
-    assert root == ["__init__.py", "config.py", "cpu_backend.py", "geometry.py"]
+    assert root == ["__init__.py", "config.py", "cpu_backend.py", "geometry.py", "progress.py"]
 
 
 def test_the_checks_catch_a_circle_and_an_upward_import(tmp_path):

@@ -10,6 +10,7 @@ import ml_collections
 from gac_jax.data import transforms
 from gac_jax.data.cache import default_cache_dir
 from gac_jax.data.files import KittiFormatError
+from gac_jax.progress import say
 
 
 def synthetic_config() -> ml_collections.ConfigDict:
@@ -60,7 +61,7 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
         from gac_jax.data.synthetic import generate_dataset
 
         s = cfg.synthetic
-        generate_dataset(
+        result = generate_dataset(
             root,
             num_frames=s.num_frames,
             seed=s.seed,
@@ -69,7 +70,10 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
             val_fraction=s.val_fraction,
             rig_set=s.get("rigs", "kitti"),
             workers=s.get("workers") or None,  # 0 / absent: one per core
+            progress=True,  # what, where and about how long; then a bar or a line per ~10 %
         )
+        if result.generated == 0:
+            say(f"reusing the embedded dataset ({result.num_frames} frames) in {root}")
     from gac_jax.training import multiprocess
 
     multiprocess.barrier("dataset_ready")  # the others wait (with a timeout) for process 0

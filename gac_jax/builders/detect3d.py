@@ -23,6 +23,7 @@ from gac_jax.detection.detection_loss import DetectionLossConfig
 from gac_jax.detection.inference import PostprocessConfig
 from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
 from gac_jax.models.detector import Detector
+from gac_jax.progress import Progress, say
 
 
 def anchor_layout(config: ml_collections.ConfigDict) -> AnchorLayout:
@@ -168,9 +169,15 @@ def compute_priors(config, root: Path, layout: AnchorLayout, workdir: Path):
             num_epochs=1,
             worker_count=d.num_workers,
         )
-        for batch in loader.iterate():
-            for b in range(len(batch["classes"])):
-                yield {k: v[b] for k, v in batch.items()}
+        say(
+            f"computing anchor priors from the {len(source)} frames of split {d.train_split!r} "
+            f"into {workdir / 'anchor_priors.npz'} (once per run folder)"
+        )
+        with Progress(len(source), "anchor priors", "frame") as bar:
+            for batch in loader.iterate():
+                for b in range(len(batch["classes"])):
+                    yield {k: v[b] for k, v in batch.items()}
+                bar.update(len(batch["classes"]))
 
     return load_or_compute_priors(
         workdir / "anchor_priors.npz",

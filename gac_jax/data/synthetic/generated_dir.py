@@ -16,6 +16,7 @@ import json
 import multiprocessing
 import os
 import shutil
+import time
 from pathlib import Path
 
 import cv2
@@ -23,6 +24,7 @@ import numpy as np
 
 from gac_jax.data import files
 from gac_jax.data.worker_lifetime import Owner, exit_with_owner
+from gac_jax.progress import Progress, say
 
 
 def png_bytes(array: np.ndarray, png_filter: int, huffman_only: bool = False) -> bytes:
@@ -126,43 +128,44 @@ def remove_temporaries(root: Path, owned) -> None:
                 p.unlink(missing_ok=True)
 
 
-def run_jobs(fn, job, todo: list, workers: int | None, progress: bool, desc: str) -> list[float]:
+def run_jobs(
+    fn, job, todo: list, workers: int | None, progress: bool, desc: str, announce=None
+) -> list[float]:
     """Calls ``fn(job, item)`` for every item of ``todo`` in ``workers`` processes (default: one
     per core; 1 = in this process), in order; returns what the calls returned (seconds).
 
-    The pool uses forkserver (spawn where there is none) and never outlives this process.
+    ``progress``: the first item runs here, timed, and ``announce(seconds, parallel)`` (if
+    given) returns the line printed before the rest (what is made, where, about how long);
+    then a bar on a terminal or a line every ~10 % (:mod:`gac_jax.progress`). The pool uses
+    forkserver (spawn where there is none) and never outlives this process.
     """
     if workers is None:
         workers = os.cpu_count() or 1
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(todo), unit="frame", desc=desc)
-    seconds = []
-    try:
-        if workers == 1 or len(todo) <= 1:
-            for item in todo:
+    seconds, start = [], time.perf_counter()
+    if progress and todo:
+        seconds.append(fn(job, todo[0]))
+        if announce is not None:
+            say(announce(seconds[0], max(1, min(workers, len(todo) - 1, os.cpu_count() or 1))))
+    with Progress(len(todo), desc, "frame", enabled=progress, start=start) as bar:
+        bar.update(len(seconds))
+        rest = todo[len(seconds) :]
+        if workers == 1 or len(rest) <= 1:
+            for item in rest:
                 seconds.append(fn(job, item))
-                if bar is not None:
-                    bar.update(1)
+                bar.update(1)
             return seconds
         methods = multiprocessing.get_all_start_methods()
         context = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
-        chunk = max(1, min(16, len(todo) // (workers * 8)))
+        chunk = max(1, min(16, len(rest) // (workers * 8)))
         with concurrent.futures.ProcessPoolExecutor(
-            max_workers=min(workers, len(todo)),
+            max_workers=min(workers, len(rest)),
             mp_context=context,
             initializer=init_worker,
             initargs=(Owner.current().token(),),
         ) as pool:
-            for dt in pool.map(fn, [job] * len(todo), todo, chunksize=chunk):
+            for dt in pool.map(fn, [job] * len(rest), rest, chunksize=chunk):
                 seconds.append(dt)
-                if bar is not None:
-                    bar.update(1)
+                bar.update(1)
         return seconds
-    finally:
-        if bar is not None:
-            bar.close()
