@@ -71,6 +71,8 @@ def test_first_run_generates_trains_and_evaluates(task, tmp_path):
         cache,
     )
     assert printed in out, out[-3000:]
+    # grain's shared-memory worker batches are all released (tests/test_loader_shared_memory.py)
+    assert "leaked shared_memory" not in out, out[-3000:]
     (root,) = cache.iterdir()  # the embedded dataset, generated complete into the empty cache
     # it talks: what it generates, where and about how long, then a plain line every ~10 %
     # (a pipe, not a terminal: no bar)

@@ -35,10 +35,14 @@ frame without one, the level plane ``(0, -1, 0, camera_height)`` of the array co
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import dataclasses
 import functools
+import gc
 import math
 import sys
+import weakref
 from collections.abc import Callable, Iterator, Sequence
 
 import grain
@@ -199,16 +203,69 @@ def collate(items: Sequence[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return out
 
 
-def _closing(iterator) -> Iterator[dict]:
-    """Yields from a grain iterator and closes it (stopping its workers) when done or dropped."""
+def _closing(iterator, shared_memory: bool = False) -> Iterator[dict]:
+    """Yields from a grain iterator and closes it (stopping its workers) when done or dropped;
+    ``shared_memory``: then releases the shared-memory batches it still held."""
     try:
         yield from iterator
     finally:
         iterator.close()
+        if shared_memory:
+            _release_dropped_batches()
 
 
 def _own_arrays(batch: dict) -> dict:
-    return {k: np.array(v) for k, v in batch.items()}
+    """Copies a worker batch out of grain's shared memory and unlinks each block at once.
+
+    grain 0.2.x unlinks a block when its array is garbage-collected, on a background thread
+    whose queue is dropped at exit, and the arrays of the last batches sit in reference
+    cycles of grain's iterators that only the cyclic GC frees: a block still linked when
+    the program ends makes Python's resource_tracker warn "There appear to be N leaked
+    shared_memory objects". Unlinked here (the mapping stays valid until the array is
+    closed), it is gone from the tracker whatever happens to the array later.
+    """
+    out = {}
+    for key, value in batch.items():
+        out[key] = np.array(value)
+        if getattr(value, "_unlink_on_del", False):  # a grain SharedMemoryArray we own
+            value._unlink_on_del = False
+            value.shm.unlink()
+    return out
+
+
+_OPEN_WORKER_ITERATORS: weakref.WeakSet = weakref.WeakSet()
+
+
+def _close_at_exit(batches: Iterator[dict]) -> None:
+    """Closes ``batches`` at interpreter exit if its owner did not (an exception left the loop):
+    before the modules are torn down, so that grain can still stop its workers and unlink the
+    shared memory they hold (later, its clean-up fails and the blocks leak)."""
+    _register_exit_hook()
+    _OPEN_WORKER_ITERATORS.add(batches)
+
+
+@functools.cache
+def _register_exit_hook() -> None:
+    atexit.register(_close_open_worker_iterators)
+
+
+def _close_open_worker_iterators() -> None:
+    for batches in list(_OPEN_WORKER_ITERATORS):
+        with contextlib.suppress(ValueError):  # still running in another thread
+            batches.close()
+
+
+def _release_dropped_batches() -> None:
+    """Frees the shared memory of worker batches that never reached :func:`_own_arrays`
+    (buffered when the iterator was closed early): collects grain's reference cycles, then
+    waits for grain's one-thread unlink queue to run what that queued (FIFO)."""
+    gc.collect()
+    from grain._src.python.ipc.shared_memory_array import SharedMemoryArray
+
+    pool = getattr(SharedMemoryArray, "_del_thread_pool", None)
+    if pool is not None:
+        with contextlib.suppress(ValueError):  # the pool no longer runs (interpreter exit)
+            pool.apply(int)
 
 
 def _grain_worker_flags_workaround() -> None:
@@ -373,7 +430,11 @@ class Loader:
             # Batches arrive as shared-memory arrays; copying them into ordinary
             # arrays lets grain free the shared memory right away.
             it_ds = it_ds.map(_own_arrays)
-        return _closing(iter(it_ds))
+        if self.worker_count == 0:
+            return _closing(iter(it_ds))
+        batches = _closing(iter(it_ds), shared_memory=True)
+        _close_at_exit(batches)
+        return batches
 
     def epoch(self, epoch: int) -> Iterator[dict]:
         """The batches of one epoch."""
