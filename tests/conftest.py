@@ -22,6 +22,12 @@ VENDORED_KITTI = REPO_ROOT / "tests" / "data" / "kitti"
 
 
 _SESSION_DIRS: list[str] = []
+_SESSION_JIT_CACHE = "GAC_JAX_TEST_SESSION_JIT_CACHE"
+# Session fixtures that are expensive to build (a trained run folder ...). Under pytest-xdist
+# (``-n 2 --dist loadgroup``, the README's test command) every test file that uses one of them
+# runs in one worker, which builds it once; every other file runs whole in one worker, so that
+# its module fixtures are built once too. A new expensive session fixture goes in here.
+SHARED_SESSION_FIXTURES = ("tiny_detect3d_workdir",)
 
 
 def pytest_configure(config):
@@ -35,8 +41,14 @@ def pytest_configure(config):
     state survives the session.
     """
     os.environ["GAC_JAX_CACHE"] = tempfile.mkdtemp(prefix="gac_jax_test_cache_")
-    _JIT_CACHE = tempfile.mkdtemp(prefix="gac_jax_test_jit_cache_")
-    _SESSION_DIRS.extend([os.environ["GAC_JAX_CACHE"], _JIT_CACHE])
+    _SESSION_DIRS.append(os.environ["GAC_JAX_CACHE"])
+    # Under pytest-xdist each worker process has its own dataset cache (two processes must not
+    # generate one dataset folder at once) but all share the controller's compilation cache.
+    _JIT_CACHE = os.environ.get(_SESSION_JIT_CACHE) if "PYTEST_XDIST_WORKER" in os.environ else None
+    if _JIT_CACHE is None:
+        _JIT_CACHE = tempfile.mkdtemp(prefix="gac_jax_test_jit_cache_")
+        _SESSION_DIRS.append(_JIT_CACHE)
+        os.environ[_SESSION_JIT_CACHE] = _JIT_CACHE  # inherited by the xdist workers
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _JIT_CACHE
     os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
@@ -50,6 +62,23 @@ def pytest_configure(config):
     # The entry points' own CPU flags, so that code run in this process compiles exactly
     # like the train.py subprocesses it is compared with (bit-level resume checks).
     apply_default_xla_flags(os.environ)
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's worker reads the marks
+def pytest_collection_modifyitems(config, items):
+    """Groups the tests for pytest-xdist's ``--dist loadgroup`` (see SHARED_SESSION_FIXTURES);
+    a test's own ``xdist_group`` mark wins. Nothing changes without xdist."""
+    if not getattr(config.option, "loadgroup", False):  # set in xdist's workers
+        return
+    files: dict[str, str] = {}
+    for item in items:
+        path = item.nodeid.split("::")[0]
+        shared = [f for f in SHARED_SESSION_FIXTURES if f in getattr(item, "fixturenames", ())]
+        if shared or path not in files:
+            files[path] = shared[0] if shared else path
+    for item in items:
+        if item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(files[item.nodeid.split("::")[0]]))
 
 
 def pytest_unconfigure(config):
