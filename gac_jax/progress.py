@@ -50,6 +50,7 @@ class Progress:
         ``bar_stream`` (default ``sys.stderr``) is an interactive terminal.
       steps: lines at each ``1/steps`` of ``total`` (and at the end).
       enabled: ``False``: silent.
+      start: ``time.perf_counter()`` when the work began (default: now).
     """
 
     def __init__(
@@ -62,13 +63,14 @@ class Progress:
         bar_stream: IO[str] | None = None,
         steps: int = 10,
         enabled: bool = True,
+        start: float | None = None,
     ):
         self.total, self.desc, self.unit = max(int(total), 0), desc, unit
         self.done = 0
         self._stream = stream
         self._steps = max(int(steps), 1)
         self._next_step = 1
-        self._start = time.perf_counter()
+        self._start = time.perf_counter() if start is None else start
         self._enabled = enabled and self.total > 0
         self._bar = None
         bar_stream = bar_stream or sys.stderr
