@@ -28,6 +28,9 @@ _SESSION_JIT_CACHE = "GAC_JAX_TEST_SESSION_JIT_CACHE"
 # runs in one worker, which builds it once; every other file runs whole in one worker, so that
 # its module fixtures are built once too. A new expensive session fixture goes in here.
 SHARED_SESSION_FIXTURES = ("tiny_detect3d_workdir",)
+# Files whose tests time other processes (heartbeats, kill-and-exit deadlines; each runs
+# several processes): one worker runs them one after another, never two of them at once.
+TIMED_PROCESS_FILES = ("test_multihost.py", "test_stopping.py", "test_worker_lifetime.py")
 
 
 def pytest_configure(config):
@@ -74,7 +77,9 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         path = item.nodeid.split("::")[0]
         shared = [f for f in SHARED_SESSION_FIXTURES if f in getattr(item, "fixturenames", ())]
-        if shared or path not in files:
+        if Path(path).name in TIMED_PROCESS_FILES:
+            files[path] = "timed_processes"
+        elif shared or path not in files:
             files[path] = shared[0] if shared else path
     for item in items:
         if item.get_closest_marker("xdist_group") is None:
