@@ -33,10 +33,12 @@ from torch_reference_models import (  # noqa: E402  (tests/ is on sys.path under
     randomize_,
 )
 
+from tests.conftest import SHARED  # noqa: E402
+
 torch.set_num_threads(1)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-REFERENCE_STATE_DICT = REPO_ROOT.parent / "shared" / "spec" / "reference_state_dict.md"
+REFERENCE_STATE_DICT = SHARED / "spec" / "reference_state_dict.md"  # ../shared (optional)
 
 
 def state_dict_np(model) -> dict[str, np.ndarray]:

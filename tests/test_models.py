@@ -8,7 +8,6 @@ reads torch-layout (OIHW) weights, and the reference state-dict listing in
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import chex
 import jax
@@ -22,10 +21,9 @@ from gac_jax.models import naming
 from gac_jax.models.detection_head import REGRESSION_COMPONENTS
 from gac_jax.models.detector import Detector, feature_map_size
 from gac_jax.models.resnet import ResNet, layer_channels, layer_output_size
+from tests.conftest import SHARED
 
-REFERENCE_STATE_DICT = (
-    Path(__file__).resolve().parents[1].parent / "shared" / "spec" / "reference_state_dict.md"
-)
+REFERENCE_STATE_DICT = SHARED / "spec" / "reference_state_dict.md"  # ../shared (optional)
 
 
 def count(tree) -> int:
