@@ -59,10 +59,11 @@ class StepMemory:
         )
 
     def describe(self) -> str:
+        unit, size = ("GiB", GIB) if self.total >= GIB // 2 else ("MiB", 1024**2)
         return (
-            f"{self.total / GIB:.2f} GiB (arguments {self.arguments / GIB:.2f}, outputs "
-            f"{self.outputs / GIB:.2f}, temporaries {self.temporaries / GIB:.2f}, donated "
-            f"-{self.aliased / GIB:.2f})"
+            f"{self.total / size:.2f} {unit} (arguments {self.arguments / size:.2f}, outputs "
+            f"{self.outputs / size:.2f}, temporaries {self.temporaries / size:.2f}, donated "
+            f"-{self.aliased / size:.2f})"
         )
 
     def as_record(self) -> dict[str, int]:
@@ -147,7 +148,7 @@ def raise_if_out_of_memory(
     first = str(error).strip().splitlines()[0] if str(error).strip() else "RESOURCE_EXHAUSTED"
     if len(first) > 160:
         first = first[:157] + "..."
-    need = f"needs {memory.total / GIB:.2f} GiB per device" if memory is not None else "needs"
+    need = f"needs {memory.describe()} per device" if memory is not None else "does not fit"
     details = run_log.active_path()
     raise DeviceMemoryError(
         f"out of device memory: the train step at data.batch_size={batch_size} {need}, "
