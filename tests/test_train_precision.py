@@ -12,13 +12,12 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import pytest
 
 from gac_jax.builders import depth as depth_builders
 from gac_jax.builders import detect3d as detect_builders
 from gac_jax.config import ConfigError, apply_overrides, load_config
-from gac_jax.data.loader import DepthArrays, DetectionArrays, Loader
+from gac_jax.data.loader import DetectionArrays, Loader
 from gac_jax.data.sources import open_object_source
 from gac_jax.detection.anchor_priors import make_detection_constants
 from gac_jax.detection.anchors import generate_anchors
@@ -97,9 +96,7 @@ def conv_operand_dtypes(step, state, batch) -> list[tuple[str, str]]:
 
 
 def float_dtypes(tree) -> set[str]:
-    return {
-        str(x.dtype) for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating)
-    }
+    return {str(x.dtype) for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating)}
 
 
 def detection_step(config, tmp_path):
@@ -145,9 +142,7 @@ def depth_step(config):
 
 
 @pytest.mark.parametrize("task", ["detect3d", "depth"])
-def test_bfloat16_step_convolves_in_bfloat16_and_keeps_float32_state(
-    task, kitti_samples, tmp_path
-):
+def test_bfloat16_step_convolves_in_bfloat16_and_keeps_float32_state(task, kitti_samples, tmp_path):
     """Every convolution of the train step (forward and backward) takes bfloat16 operands;
     parameters, optimizer state, BatchNorm statistics and the loss stay float32. The same
     step in float32 convolves in float32 (so the check can fail)."""
@@ -200,12 +195,15 @@ def test_bfloat16_run_trains_and_resumes_in_float32_and_back(
 ):
     """bfloat16 steps 1-2 (checkpoint), float32 step 3 resumed from it (checkpoint), bfloat16
     to the end resumed from that: one history, float32 checkpoints, the loss falls."""
-    if task == "detect3d":
-        module, last = detect3d, 8
+    if task == "detect3d":  # one batch of all 4 frames, unaugmented: the same input each step
+        module, last = detect3d, 6
         make = lambda *o: detect_config(  # noqa: E731
-            kitti_samples / "object", f"train.num_steps={last}", "train.eval_at_end=False", *o
+            kitti_samples / "object",
+            *("data.batch_size=4", "data.flip_prob=0.0", "data.photometric=False"),
+            *(f"train.num_steps={last}", "train.eval_at_end=False"),
+            *o,
         )
-    else:
+    else:  # one batch (both views of the frame) per step
         module, last = depth, 4
         make = lambda *o: depth_config(kitti_samples / "depth", "train.eval_at_end=False", *o)  # noqa: E731
     workdir = tmp_path / "run"
@@ -226,8 +224,10 @@ def test_bfloat16_run_trains_and_resumes_in_float32_and_back(
     assert out.count("train step memory per device: ") == 3
     losses = train_losses(workdir)
     assert sorted(losses) == list(range(1, last + 1))  # one history across the dtypes
-    epoch = 2 if task == "detect3d" else 1  # steps per epoch: the same frames each epoch
-    first, final = np.mean([losses[s] for s in range(1, epoch + 1)]), np.mean(
-        [losses[s] for s in range(last - epoch + 1, last + 1)]
-    )
-    assert final < 0.9 * first, losses
+    # It learns: the detector's loss on its one batch falls at every step, in either dtype
+    # (slowly: lr 4e-4, gradients clipped to norm 1); the depth net's falls faster.
+    if task == "detect3d":
+        assert all(losses[s + 1] < losses[s] for s in range(1, last)), losses
+        assert losses[last] < 0.99 * losses[1], losses
+    else:
+        assert losses[last] < 0.9 * losses[1], losses
