@@ -19,8 +19,8 @@ Two rates: images per second of wall time on this machine now (a loaded machine 
 cores), and images per CPU-second (process time: the rate of a worker with a core of its own).
 Workers needed = ceil(target / images per CPU-second): grain's workers are independent
 processes, so this holds while each has a free core beside the trainer's own; the trainer's
-progress line shows the device's wait for data (``data N%``) to check it in a run. Prints medians over ``--batches`` batches after one warm-up batch,
-and the machine.
+progress line shows the device's wait for data (``data N%``) to check it in a run. Prints
+medians over ``--batches`` batches after one warm-up batch, and the machine.
 """
 
 from __future__ import annotations
