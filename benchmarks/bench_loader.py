@@ -125,7 +125,8 @@ def main() -> None:
         if name not in CHAINS:
             parser.error(f"--chains: unknown chain {name!r} (known: {', '.join(CHAINS)})")
         r = measure(name, args.batches, args.batch_size)
-        r["workers_for_target"] = math.ceil(args.target_images_per_s / r["images_per_s_one_worker"])
+        # A worker with a core of its own: its CPU time is its wall time.
+        r["workers_for_target"] = math.ceil(args.target_images_per_s / r["images_per_cpu_s"])
         results.append(r)
         print(
             f"{name:12s} {r['config']:28s} {r['input']:>9s} batch {r['batch_size']}: "
