@@ -13,6 +13,8 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import pytest
+from test_train_depth import tiny_config  # tests/ is on sys.path under pytest
+from test_train_detect3d import tiny_overrides
 
 from gac_jax.builders import depth as depth_builders
 from gac_jax.builders import detect3d as detect_builders
@@ -33,35 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def detect_config(root: Path, *overrides: str):
     config = load_config(str(REPO / "configs" / "detect3d_default.py:tiny"))
-    apply_overrides(
-        config,
-        [
-            "data.source=kitti",
-            f"data.root={root}",
-            "data.train_split=labeled",
-            "data.val_split=labeled",
-            "data.use_right_image=False",
-            *overrides,
-        ],
-    )
-    return config
-
-
-def depth_config(root: Path, *overrides: str):
-    config = load_config(str(REPO / "configs" / "depth_default.py:tiny"))
-    apply_overrides(
-        config,
-        [
-            "data.source=kitti",
-            f"data.root={root}",
-            "data.val_split=train",
-            "data.val_cameras=(2, 3)",
-            "data.crop_height=352",
-            "train.num_steps=4",
-            "train.checkpoint_every=2",
-            *overrides,
-        ],
-    )
+    apply_overrides(config, [*tiny_overrides(root), *overrides])
     return config
 
 
@@ -152,7 +126,7 @@ def test_bfloat16_step_convolves_in_bfloat16_and_keeps_float32_state(task, kitti
             config = detect_config(kitti_samples / "object", *overrides)
             step, state, batch = detection_step(config, tmp_path)
         else:
-            config = depth_config(kitti_samples / "depth", *overrides)
+            config = tiny_config(kitti_samples / "depth", *overrides)
             step, state, batch = depth_step(config)
         convs = conv_operand_dtypes(step, state, batch)
         assert len(convs) > 20, convs  # ResNet forward + both backward convolutions
@@ -205,7 +179,7 @@ def test_bfloat16_run_trains_and_resumes_in_float32_and_back(
         )
     else:  # one batch (both views of the frame) per step
         module, last = depth, 4
-        make = lambda *o: depth_config(kitti_samples / "depth", "train.eval_at_end=False", *o)  # noqa: E731
+        make = lambda *o: tiny_config(kitti_samples / "depth", "train.eval_at_end=False", *o)  # noqa: E731
     workdir = tmp_path / "run"
     for dtype, stop in (("bfloat16", 2), ("float32", 3), ("bfloat16", None)):
         stop_at(module, monkeypatch, stop)

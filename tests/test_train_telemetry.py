@@ -12,6 +12,7 @@ from pathlib import Path
 
 import jax
 import pytest
+from test_train_detect3d import tiny_overrides  # tests/ is on sys.path under pytest
 
 import train
 from gac_jax.config import apply_overrides, load_config
@@ -24,15 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def overrides(root: Path) -> list[str]:
-    return [
-        "data.source=kitti",
-        f"data.root={root}",
-        "data.train_split=labeled",
-        "data.val_split=labeled",
-        "data.use_right_image=False",
-        "train.eval_at_end=False",
-        "train.log_every=1",
-    ]
+    return [*tiny_overrides(root), "train.eval_at_end=False", "train.log_every=1"]
 
 
 def tiny_config(root: Path, *extra: str):

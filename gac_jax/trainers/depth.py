@@ -61,14 +61,14 @@ from gac_jax.trainers.common import (
     create_train_state,
     host_variables,
     restore_latest,
+    step_telemetry,
     training_run,
 )
 from gac_jax.training import multiprocess, parallel, step_watchdog, stopping
 from gac_jax.training.checkpointing import Checkpoints
 from gac_jax.training.compute_dtype import compute_dtype, training_model
-from gac_jax.training.metrics_writer import MetricsWriter, Progress
+from gac_jax.training.metrics_writer import MetricsWriter
 from gac_jax.training.step_profiler import profile_range
-from gac_jax.training.step_runner import StepRunner
 from gac_jax.training.train_state import (
     TrainState,
     apply_gradients_guarded,
@@ -226,21 +226,7 @@ def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dic
     writer = MetricsWriter(
         workdir, is_main, resume_step=start_step, tensorboard=config.log.tensorboard
     )
-    progress = Progress(
-        total_steps,
-        start_step,
-        config.data.batch_size,
-        enabled=is_main,
-        num_workers=config.data.num_workers,
-    )
-    steps = StepRunner(
-        train_step,
-        mesh,
-        batch_size=config.data.batch_size,
-        profile_steps=config.train.get("profile_steps"),
-        tensorboard_dir=workdir / "tensorboard",
-        announce=is_main,
-    )
+    progress, steps = step_telemetry(config, train_step, mesh, workdir, total_steps, start_step)
 
     def save(step: int) -> None:
         check_finite(state, step, checkpoints)
