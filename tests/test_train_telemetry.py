@@ -157,6 +157,13 @@ def test_progress_reports_the_data_wait_share_and_warns_above_a_fifth(capsys):
     stats = progress.update(20, 1.0, data_wait_s=0.001)
     out, err = capsys.readouterr()
     assert stats["data_wait"] < 0.05 and err == ""
+    # Still input-bound: the share is on every progress line, the warning every 10 windows.
+    warned = []
+    for window in range(3, 24):
+        progress.restart(window * 10 - 10)
+        progress.update(window * 10, 1.0, data_wait_s=1.0)
+        warned += [window] if "warning:" in capsys.readouterr().err else []
+    assert warned == [11, 21]  # 10 windows after the first warning (window 1), and so on
 
 
 @pytest.mark.parametrize("value", ["(0, 2)", "(3,)", "'x'"])

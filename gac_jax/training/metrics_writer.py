@@ -104,8 +104,10 @@ def _jsonable(v):
     return v
 
 
-# Share of a logging window the device waited for data above which the run says so.
+# Share of a logging window the device waited for data above which the run says so (again
+# after DATA_WAIT_REPEAT windows if it stays above: the progress line shows it every window).
 DATA_WAIT_WARNING = 0.2
+DATA_WAIT_REPEAT = 10
 
 
 class Progress:
@@ -113,7 +115,8 @@ class Progress:
 
     Shows step/total, loss, images/s, the share of the time the device waited for data
     (``data 3%``) and ETA. A window in which that share exceeds :data:`DATA_WAIT_WARNING`
-    prints one warning line naming ``data.num_workers`` (``num_workers``).
+    prints one warning line naming ``data.num_workers`` (``num_workers``), repeated at most
+    every :data:`DATA_WAIT_REPEAT` windows.
     """
 
     def __init__(
@@ -128,6 +131,7 @@ class Progress:
         self.start_step = start_step
         self.num_workers = num_workers
         self._t_last, self._s_last = time.perf_counter(), start_step
+        self._windows, self._warned_window = 0, None
         self._interactive = enabled and sys.stderr.isatty()
         self._bar = None
         if self._interactive:
@@ -168,7 +172,12 @@ class Progress:
             self._bar.set_postfix_str(text, refresh=True)
         else:
             print(f"step {step}/{self.total} | {text} | ETA {_fmt(eta)}", flush=True)
-        if stats.get("data_wait", 0.0) > DATA_WAIT_WARNING:
+        self._windows += 1
+        recent = self._warned_window is not None and (
+            self._windows - self._warned_window < DATA_WAIT_REPEAT
+        )
+        if stats.get("data_wait", 0.0) > DATA_WAIT_WARNING and not recent:
+            self._warned_window = self._windows
             self._warn(
                 f"warning: steps {first + 1}-{step} waited for data "
                 f"{100 * stats['data_wait']:.0f}% of the time: the input pipeline is the "
