@@ -24,11 +24,10 @@ from gac_jax.data.sources import open_object_source
 from gac_jax.detection.anchor_priors import make_detection_constants
 from gac_jax.detection.anchors import generate_anchors
 from gac_jax.trainers import depth, detect3d
-from gac_jax.trainers.common import create_train_state
 from gac_jax.training import multiprocess, parallel
 from gac_jax.training.checkpointing import Checkpoints
 from gac_jax.training.compute_dtype import compute_dtype, training_model
-from gac_jax.training.train_state import make_optimizer
+from gac_jax.training.train_state import TrainState, make_optimizer
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -73,6 +72,15 @@ def float_dtypes(tree) -> set[str]:
     return {str(x.dtype) for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating)}
 
 
+def abstract_state(init, tx, mesh):
+    """The train state's shapes and dtypes (nothing compiled or computed) and its sharding."""
+    variables = jax.eval_shape(init)
+    state = jax.eval_shape(
+        lambda v: TrainState.create(v["params"], v["batch_stats"], tx, 0), variables
+    )
+    return state, jax.tree.map(lambda _: parallel.replicated(mesh), state)
+
+
 def detection_step(config, tmp_path):
     layout = detect_builders.anchor_layout(config)
     priors = detect_builders.compute_priors(config, Path(config.data.root), layout, tmp_path)
@@ -80,10 +88,11 @@ def detection_step(config, tmp_path):
         generate_anchors(layout), priors, detect_builders.sign_axis(config)
     )
     model = detect_builders.build_model(config, layout.anchors_per_cell)
-    variables = detect_builders.init_variables(model, config, 0)
     tx = make_optimizer(lambda s: 1e-3, 1.0)
     mesh = parallel.make_mesh(jax.devices()[:1])
-    state, sharding = create_train_state(variables, tx, 0, mesh)
+    state, sharding = abstract_state(
+        lambda: detect_builders.init_variables(model, config, 0), tx, mesh
+    )
     step = detect3d.make_train_step(
         training_model(model, config),
         tx,
@@ -102,10 +111,11 @@ def detection_step(config, tmp_path):
 
 def depth_step(config):
     model = depth_builders.build_model(config, 2.5)
-    variables = depth_builders.init_variables(model, config, 0)
     tx = make_optimizer(lambda s: 1e-3, 1.0)
     mesh = parallel.make_mesh(jax.devices()[:1])
-    state, sharding = create_train_state(variables, tx, 0, mesh)
+    state, sharding = abstract_state(
+        lambda: depth_builders.init_variables(model, config, 0), tx, mesh
+    )
     step = depth.make_train_step(
         training_model(model, config), tx, depth_builders.loss_options(config), mesh, sharding
     )
