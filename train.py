@@ -14,7 +14,8 @@ SIGTERM or Ctrl-C (SIGINT): the run finishes its current step, saves a checkpoin
 a second Ctrl-C stops at once (130, no checkpoint). One run per workdir: a second train.py (or
 evaluate.py) on a workdir in use stops at once, naming the process that holds it (exit 2). A
 full disk ends the run with one line naming the file, the free space and the checkpoint kept
-(exit 1; library details in WORKDIR/details.log); run again, with space, to resume. Exit
+(exit 1; library details in WORKDIR/details.log); run again, with space, to resume. Out of
+device memory: one line with what the step needs, naming data.batch_size (exit 1). Exit
 codes: 0 done, 1 crash or disk failure, 2 bad config or data or workdir in use, 3 another
 process died or hung, 75 stopped after a checkpoint (run again to resume).
 """
@@ -130,6 +131,7 @@ def _run(args: argparse.Namespace) -> int:
     from gac_jax.config import ConfigError, apply_overrides, load_config, resolve_config_path
     from gac_jax.data.files import KittiFormatError
     from gac_jax.data.io_errors import error_line
+    from gac_jax.training.step_memory import DeviceMemoryError
     from gac_jax.training.workdir_lock import LockUnsupportedError, WorkdirBusyError
 
     spec = args.config or DEFAULT_CONFIGS[args.task]
@@ -155,6 +157,9 @@ def _run(args: argparse.Namespace) -> int:
     except (ConfigError, KittiFormatError, WorkdirBusyError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except DeviceMemoryError as e:  # one line; XLA's text is in WORKDIR/details.log
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     except (FileNotFoundError, PermissionError, LockUnsupportedError) as e:
         print(f"error: {error_line(e, workdir)}", file=sys.stderr)
         return 2

@@ -7,7 +7,13 @@ Each (config, batch size) runs in its own subprocess so that peak resident
 memory (``ru_maxrss``) belongs to that case alone. Inputs are random images
 with real-looking calibration and random ground truth; the step is the
 trainer's own jitted step (``gac_jax.trainers.detect3d.make_train_step``).
-Reports the median step time over ``--steps`` steps after the compile step.
+Reports the median step time over ``--steps`` steps after the compile step, and the line the
+trainer prints after compiling: what XLA's compiled step needs per device (arguments,
+outputs, temporaries) next to what the device has. ``--compute-dtype bfloat16`` measures the
+``train.compute_dtype=bfloat16`` step; ``--steps 0`` compiles only (the memory line)::
+
+    python benchmarks/bench_train_step.py --configs paper --batch-sizes 8 --steps 0 \
+        --compute-dtype bfloat16      # on a GPU: the need on that GPU, before a real run
 
 Side by side (``--compare``): one process times, interleaved round by round, the default
 detector (and the default depth U-Net) as JAX with the plain Flax ops (``--compare`` traces
@@ -39,7 +45,7 @@ from gac_jax.cpu_backend import apply_default_xla_flags  # noqa: E402
 apply_default_xla_flags()
 
 
-def run_case(config_spec: str, batch_size: int, steps: int) -> dict:
+def run_case(config_spec: str, batch_size: int, steps: int, compute_dtype: str) -> dict:
     import resource
     import time
 
@@ -47,19 +53,23 @@ def run_case(config_spec: str, batch_size: int, steps: int) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    case = build_detector_case(config_spec, batch_size)
+    from gac_jax.training.step_memory import StepMemory, memory_line
+
+    case = build_detector_case(config_spec, batch_size, compute_dtype)
     c, state, batch, step = case["config"], case["state"], case["batch"], case["step"]
     h, w, init_s = c.data.height, c.data.width, case["init_s"]
     t0 = time.perf_counter()
     compiled = step.lower(state, batch).compile()
     compile_s = time.perf_counter() - t0
+    memory = StepMemory.of(compiled)
+    print(memory_line(memory), file=sys.stderr, flush=True)
     times = []
-    for _ in range(steps + 1):
+    for _ in range(steps + 1 if steps else 0):
         t0 = time.perf_counter()
         state, metrics = compiled(state, batch)
         jax.block_until_ready(metrics["loss"])
         times.append(time.perf_counter() - t0)
-    times = times[1:]  # the first call also transfers/allocates
+    times = times[1:] or [float("nan")]  # the first call also transfers/allocates
     n_params = sum(x.size for x in jax.tree.leaves(state.params))
     return {
         "config": config_spec,
@@ -67,13 +77,16 @@ def run_case(config_spec: str, batch_size: int, steps: int) -> dict:
         "backbone": f"ResNet-{c.model.backbone_depth}",
         "params": int(n_params),
         "batch_size": batch_size,
+        "compute_dtype": compute_dtype,
         "init_s": round(init_s, 2),
         "compile_s": round(compile_s, 2),
         "step_s_median": round(float(np.median(times)), 4),
         "step_s_all": [round(t, 4) for t in times],
         "images_per_s": round(batch_size / float(np.median(times)), 2),
         "peak_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),
-        "loss_finite": bool(jnp.isfinite(metrics["loss"])),
+        "loss_finite": bool(jnp.isfinite(metrics["loss"])) if steps else None,
+        "memory_per_device": memory.as_record() if memory else None,
+        "memory_line": memory_line(memory),
     }
 
 
@@ -83,7 +96,8 @@ def main() -> None:
     parser.add_argument(
         "--batch-sizes", default="", help="comma list (default: 8 and the config's)"
     )
-    parser.add_argument("--steps", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=3, help="timed steps (0: compile only)")
+    parser.add_argument("--compute-dtype", default="float32", choices=("float32", "bfloat16"))
     parser.add_argument("--json", help="write the results here")
     parser.add_argument("--case", help=argparse.SUPPRESS)  # internal: run one case
     parser.add_argument("--compare", action="store_true", help="side by side (see above)")
@@ -102,7 +116,7 @@ def main() -> None:
         return
     if args.case:
         spec, bs = args.case.rsplit("@", 1)
-        print(json.dumps(run_case(spec, int(bs), args.steps)))
+        print(json.dumps(run_case(spec, int(bs), args.steps, args.compute_dtype)))
         return
     from gac_jax.config import load_config
 
@@ -114,6 +128,7 @@ def main() -> None:
         )
         for bs in sizes:
             cmd = [sys.executable, __file__, "--case", f"{spec}@{bs}", "--steps", str(args.steps)]
+            cmd += ["--compute-dtype", args.compute_dtype]
             proc = subprocess.run(cmd, capture_output=True, text=True)
             if proc.returncode != 0:
                 tail = proc.stderr.strip().splitlines()[-1:] or ["(no output)"]

@@ -12,8 +12,9 @@ CONFIGS = {
 }
 
 
-def build_detector_case(config_spec: str, batch_size: int) -> dict:
-    """Model, optimizer, train state, trainer step and a random batch for one detector config."""
+def build_detector_case(config_spec: str, batch_size: int, compute_dtype: str = "float32") -> dict:
+    """Model, optimizer, train state, trainer step and a random batch for one detector config
+    (``compute_dtype``: ``train.compute_dtype`` of the step's model)."""
     import time
 
     import jax
@@ -25,10 +26,12 @@ def build_detector_case(config_spec: str, batch_size: int) -> dict:
     from gac_jax.detection.anchors import generate_anchors
     from gac_jax.trainers import detect3d
     from gac_jax.training import parallel
+    from gac_jax.training.compute_dtype import training_model
     from gac_jax.training.train_state import TrainState, learning_rate_schedule, make_optimizer
 
     c = load_config(config_spec)
     c.data.batch_size = batch_size
+    c.train.compute_dtype = compute_dtype
     layout = builders.anchor_layout(c)
     anchors = generate_anchors(layout)
     k, a = len(c.data.classes), layout.anchors_per_cell
@@ -61,7 +64,13 @@ def build_detector_case(config_spec: str, batch_size: int) -> dict:
     rep = parallel.replicated(mesh)
     state = jax.device_put(TrainState.create(v["params"], v["batch_stats"], tx, 0), rep)
     step = detect3d.make_train_step(
-        model, tx, constants, builders.loss_config(c), c, mesh, jax.tree.map(lambda _: rep, state)
+        training_model(model, c),
+        tx,
+        constants,
+        builders.loss_config(c),
+        c,
+        mesh,
+        jax.tree.map(lambda _: rep, state),
     )
     rng = np.random.default_rng(0)
     h, w, m = c.data.height, c.data.width, c.data.max_objects

@@ -108,6 +108,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.train.eval_every = 0  # steps; 0 = only at the end (reference: every 2 epochs)
     c.train.eval_max_batches = 0  # 0 = the whole split
     c.train.eval_at_end = True
+    # 'bfloat16': convolutions and activations in bfloat16 (GPU/TPU), parameters, optimizer
+    # state, BatchNorm statistics and the loss in float32; checkpoints resume either way
+    c.train.compute_dtype = "float32"
+    # (start, count): a jax.profiler trace of those steps into WORKDIR/tensorboard (None: off)
+    c.train.profile_steps = None
 
     c.eval = ml_collections.ConfigDict()
     c.eval.num_pictures = 4  # val frames drawn at each evaluation

@@ -92,6 +92,8 @@ def test_training_writes_curves_and_evaluation_pictures(tiny_detect3d_workdir):
         "train/lr",
         "train/images_per_s",
         "compile/compile_s",
+        "compile/memory_bytes/total",
+        "train/data_wait",
         "eval/metrics/ap40/Car/0.70/3d/moderate",
         "eval/metrics/ap11/Car/0.70/bbox/easy",
     }

@@ -15,6 +15,8 @@ import optax
 from gac_jax.data.io_errors import DiskWriteError, describe, disk_failure
 from gac_jax.training import parallel, run_log, workdir_lock
 from gac_jax.training.checkpointing import Checkpoints, complete_steps
+from gac_jax.training.metrics_writer import Progress
+from gac_jax.training.step_runner import StepRunner
 from gac_jax.training.train_state import TrainState
 
 
@@ -73,6 +75,31 @@ def create_train_state(
         out_shardings=replicated,
     )(variables)
     return state, jax.tree.map(lambda _: replicated, state)
+
+
+def step_telemetry(
+    config, train_step, mesh, workdir: Path, total_steps: int, start_step: int
+) -> tuple[Progress, StepRunner]:
+    """The progress line (loss, images/s, the device's wait for data, ETA) and the
+    :class:`~gac_jax.training.step_runner.StepRunner` of ``train_step`` (compiled ahead of
+    time with its memory line, ``train.profile_steps``, out-of-memory as one line)."""
+    is_main = jax.process_index() == 0
+    progress = Progress(
+        total_steps,
+        start_step,
+        config.data.batch_size,
+        enabled=is_main,
+        num_workers=config.data.num_workers,
+    )
+    steps = StepRunner(
+        train_step,
+        mesh,
+        batch_size=config.data.batch_size,
+        profile_steps=config.train.get("profile_steps"),
+        tensorboard_dir=workdir / "tensorboard",
+        announce=is_main,
+    )
+    return progress, steps
 
 
 def restore_latest(

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import functools
 import json
-import time
 from pathlib import Path
 
 import jax
@@ -62,11 +61,14 @@ from gac_jax.trainers.common import (
     create_train_state,
     host_variables,
     restore_latest,
+    step_telemetry,
     training_run,
 )
 from gac_jax.training import multiprocess, parallel, step_watchdog, stopping
 from gac_jax.training.checkpointing import Checkpoints
-from gac_jax.training.metrics_writer import MetricsWriter, Progress
+from gac_jax.training.compute_dtype import compute_dtype, training_model
+from gac_jax.training.metrics_writer import MetricsWriter
+from gac_jax.training.step_profiler import profile_range
 from gac_jax.training.train_state import (
     TrainState,
     apply_gradients_guarded,
@@ -184,6 +186,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str | Path) -
 
 def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dict:
     is_main = jax.process_index() == 0
+    compute_dtype(config)  # bad train.compute_dtype / profile_steps: one line, before any work
+    profile_range(config.train.get("profile_steps"))
     if is_main:
         workdir.mkdir(parents=True, exist_ok=True)
         save_config(config, workdir)
@@ -215,12 +219,14 @@ def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dic
     state, start_step, _ = restore_latest(checkpoints, state, announce=is_main)
 
     # Step and evaluator.
-    train_step = make_train_step(model, tx, loss_options(config), mesh, state_sharding)
+    train_step = make_train_step(  # the model in train.compute_dtype; evaluation in float32
+        training_model(model, config), tx, loss_options(config), mesh, state_sharding
+    )
     evaluator = make_evaluator(config, eval_source(config, root)) if is_main else None
     writer = MetricsWriter(
         workdir, is_main, resume_step=start_step, tensorboard=config.log.tensorboard
     )
-    progress = Progress(total_steps, start_step, config.data.batch_size, enabled=is_main)
+    progress, steps = step_telemetry(config, train_step, mesh, workdir, total_steps, start_step)
 
     def save(step: int) -> None:
         check_finite(state, step, checkpoints)
@@ -248,20 +254,24 @@ def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dic
     hint = f"Restart all processes to resume from the last checkpoint in {checkpoints.directory}."
     multiprocess.settings.peer_lost_hint = hint  # also for losses seen outside a step
     watchdog = step_watchdog.ProgressWatchdog(hint=hint)
-    compile_t0 = time.perf_counter()
     step = start_step
     try:
-        for batch in loader.iterate(start_step, total_steps - start_step):
-            state, metrics = train_step(state, parallel.to_global(batch, mesh))
+        for batch in steps.batches(loader.iterate(start_step, total_steps - start_step)):
             step += 1
+            state, metrics = steps(state, batch, step)  # the first call compiles
             watchdog.step(step, metrics)
             if step == start_step + 1:
-                jax.block_until_ready(metrics)
-                writer.write(step, kind="compile", compile_s=time.perf_counter() - compile_t0)
+                progress.restart(start_step)  # throughput windows start after the compile
+                writer.write(step, kind="compile", **steps.compile_record())
             if step % config.train.log_every == 0 or step == total_steps:
                 m = parallel.to_host(metrics)
                 check_finite(state, step, checkpoints, loss=m["loss"])
-                stats = progress.update(step, float(m["loss"]), {"si_1": float(m["si/scale_1"])})
+                stats = progress.update(
+                    step,
+                    float(m["loss"]),
+                    {"si_1": float(m["si/scale_1"])},
+                    data_wait_s=steps.take_data_wait(),
+                )
                 lr = float(schedule(step - 1))
                 writer.write(step, lr=lr, **{k: float(v) for k, v in m.items()}, **stats)
             if stopping.preemption_requested(step):  # SIGTERM/SIGINT: all stop here
@@ -280,8 +290,10 @@ def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dic
         checkpoints.wait()
     except Exception as e:
         multiprocess.raise_if_peer_failure(e, hint)  # a clear PeerLostError instead of a gloo error
+        steps.raise_if_out_of_memory(e)  # one line naming data.batch_size
         raise
     finally:
+        steps.close()
         watchdog.close()
         progress.close()
         writer.flush()
