@@ -25,8 +25,9 @@ converted authors' model on real frames).
 
 A detector guard's difference is only as good as its frame count: ``--bootstrap N`` (default
 200) gives every entry's paired-frame-bootstrap standard error and decides the ~95 % verdict
-(within / beyond / undecided; ``guard_folds.py``); ``--folds K`` adds the spread a guard of
-``1/K`` of the frames would see. ``--guard-data DIR`` evaluates on a larger generated set.
+(within / beyond / undecided; :mod:`gac_jax.evaluation.ap_resampling`); ``--folds K`` adds
+the spread a guard of ``1/K`` of the frames would see. ``--guard-data DIR`` evaluates on a
+larger generated set.
 """
 
 from __future__ import annotations
@@ -46,16 +47,16 @@ from gac_jax.cpu_backend import apply_default_xla_flags  # noqa: E402
 
 apply_default_xla_flags()
 
-from guard_folds import (  # noqa: E402  (benchmarks/ on sys.path)
-    bootstrap_differences,
-    car_ap40,
-    fold_differences,
-)
 from machine_info import describe_machine, one_line  # noqa: E402
 
 from gac_jax.data.files import KittiFormatError  # noqa: E402
 from gac_jax.deploy.int8 import DEFAULT_FRAMES, Int8Settings  # noqa: E402
 from gac_jax.deploy.runtimes import RuntimeUnavailableError, check_runtime  # noqa: E402
+from gac_jax.evaluation.ap_resampling import (  # noqa: E402
+    bootstrap_differences,
+    car_ap40,
+    fold_differences,
+)
 
 COMBOS = (
     ("jax", "f32"),
@@ -166,7 +167,7 @@ def guard_detector(
 ) -> dict:
     """Every combo on the run's val split (or ``data``'s ``split``); ``k`` >= 2 folds add
     each entry's fold spread, ``boots`` >= 2 bootstrap resamples its standard error, each
-    with the ~95 % verdict of :mod:`guard_folds`."""
+    with the ~95 % verdict of :mod:`gac_jax.evaluation.ap_resampling`."""
     runs, result_dirs = {}, {}
     where = {"data_root": data} if data else None
     for combo in combos:
@@ -199,9 +200,10 @@ def guard_detector(
 
 
 def detector_spread(result_dirs: dict[str, Path], k: int, boots: int) -> dict:
-    """:func:`guard_folds.fold_differences` (``k`` >= 2) and
-    :func:`guard_folds.bootstrap_differences` (``boots`` >= 2) of every combo against jax f32
-    (the frames and labels of the evaluation, from the result folder's ``run.json``)."""
+    """:func:`~gac_jax.evaluation.ap_resampling.fold_differences` (``k`` >= 2) and
+    :func:`~gac_jax.evaluation.ap_resampling.bootstrap_differences` (``boots`` >= 2) of every
+    combo against jax f32 (the frames and labels of the evaluation, from the result folder's
+    ``run.json``)."""
     from gac_jax.data.kitti import KittiObjectLayout, read_split
 
     ref = result_dirs["jax f32"]
@@ -379,7 +381,7 @@ def main() -> None:
         type=int,
         default=5,
         help="detector: disjoint frame folds for the fold spread and the ~95%% verdict "
-        "(benchmarks/guard_folds.py; default 5, 0 = off)",
+        "(gac_jax.evaluation.ap_resampling; default 5, 0 = off)",
     )
     parser.add_argument(
         "--bootstrap",
