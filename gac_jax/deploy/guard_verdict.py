@@ -105,20 +105,27 @@ def guard_status(
 
 
 def precision_line(
-    export_dir: str | os.PathLike,
-    weights: str,
+    workdir: str | os.PathLike,
+    detector,
     runtime: str,
     precision: str,
     int8: Int8Settings | None = None,
+    export_dir: str | os.PathLike | None = None,
 ) -> str:
-    """One line: which precision runs and whether the guard decided it for this model."""
+    """One line: which precision runs and whether the guard decided it for this model
+    (``detector``: a :class:`~gac_jax.trained.detector.LoadedDetector`; ``export_dir``
+    default ``W/export/<step>``), e.g. ``precision: openvino int8; guard: within on 3000
+    frames (2026-12-04): ...`` or ``...; not guarded for these weights (...)``."""
+    from gac_jax.deploy.runtime_choice import default_export_dir
+
+    export_dir = export_dir or default_export_dir(workdir, detector)
     names = {"f32": "float32", "bf16": "bfloat16", "int8": "int8"}
     what = f"{runtime} {names.get(precision, precision)}"
     if int8 is not None and precision == "int8":
         what += " (heading kept in float32)" if int8.keep_heading else ""
     if runtime == "jax" and precision == "f32":
         return f"precision: {what}, the guard's reference"
-    status, entry = guard_status(export_dir, weights, runtime, precision, int8)
+    status, entry = guard_status(export_dir, detector.tag, runtime, precision, int8)
     if entry is None:
         return (
             f"precision: {what}; not guarded for these weights "
