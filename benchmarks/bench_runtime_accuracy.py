@@ -68,7 +68,6 @@ COMBOS = (
 )
 REPO = Path(__file__).resolve().parents[1]
 REAL_FRAMES = REPO / "tests" / "data" / "kitti" / "object"  # split "labeled"
-MATCH_IOU = 0.5
 AP_TOLERANCE = 0.5  # AP points, every Car AP|R40 entry
 SILOG_TOLERANCE = 0.2
 
@@ -281,38 +280,31 @@ def guard_depth(workdir: str, split, tmp: Path, combos: list[Combo]) -> dict:
 
 
 def match_detections(reference: Path, other: Path) -> dict:
-    """Detections of ``other`` matched to ``reference``'s (result folders of the same frames):
-    same class, 2D IoU >= 0.5, greedily in the reference's score order."""
+    """Detections of ``other`` matched to ``reference``'s (result folders of the same frames;
+    :func:`gac_jax.evaluation.paired_guard.match_detections`: same class, 2D IoU >= 0.5,
+    greedily in the reference's score order)."""
     import numpy as np
 
     from gac_jax.data.kitti import read_label
-    from gac_jax.detection.nms import box_iou_matrix
+    from gac_jax.evaluation.paired_guard import match_detections as match
 
     n_ref = n_other = matched = 0
     score_d, loc_d = [], []
     for path in sorted(reference.glob("*.txt")):
         a, b = read_label(path, True), read_label(other / path.name, True)
         n_ref, n_other = n_ref + len(a), n_other + len(b)
-        if not len(a) or not len(b):
-            continue
-        iou = box_iou_matrix(a.bbox, b.bbox)
-        iou[a.type[:, None] != b.type[None, :]] = 0.0
-        free = np.ones(len(b), bool)
-        for i in np.argsort(-a.score):
-            j = int(np.argmax(np.where(free, iou[i], -1.0)))
-            if free[j] and iou[i, j] >= MATCH_IOU:
-                free[j] = False
-                matched += 1
-                score_d.append(abs(float(a.score[i] - b.score[j])))
-                loc_d.append(float(np.linalg.norm(a.location[i] - b.location[j])))
+        i, j = match(a, b)
+        matched += len(i)
+        score_d += list(np.abs(a.score[i] - b.score[j]))
+        loc_d += list(np.linalg.norm(a.location[i] - b.location[j], axis=-1))
     return {
         "reference_detections": n_ref,
         "detections": n_other,
         "matched": matched,
         "matched_share": matched / max(n_ref, 1),
-        "max_score_diff": max(score_d, default=0.0),
+        "max_score_diff": float(max(score_d, default=0.0)),
         "median_score_diff": float(np.median(score_d)) if score_d else 0.0,
-        "max_location_diff_m": max(loc_d, default=0.0),
+        "max_location_diff_m": float(max(loc_d, default=0.0)),
         "median_location_diff_m": float(np.median(loc_d)) if loc_d else 0.0,
     }
 
