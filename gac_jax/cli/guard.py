@@ -73,6 +73,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--heading-tolerance", type=float, default=None, help="degrees (30)")
     p.add_argument("--int8-frames", type=int, help="calibration frames (as evaluate.py)")
     p.add_argument("--int8-seed", type=int, help="calibration seed (as evaluate.py)")
+    p.add_argument(
+        "--int8-keep-float",
+        action="append",
+        metavar="REGEX",
+        help="int8 candidates: also keep these layers in float32 (as evaluate.py; repeatable)",
+    )
     p.add_argument("--threads", type=int, help="CPU threads")
     p.add_argument("--json", type=Path, help="also write the full result here")
     return p
@@ -84,8 +90,19 @@ def _settings(args, keep_heading: bool):
     return Int8Settings(
         frames=DEFAULT_FRAMES if args.int8_frames is None else args.int8_frames,
         seed=DEFAULT_SEED if args.int8_seed is None else args.int8_seed,
+        keep_float=tuple(args.int8_keep_float or ()),
         keep_heading=keep_heading,
     )
+
+
+def _folder(key: str, int8) -> str:
+    """Result folder name of a candidate; int8 with a float32 scope gets its hash too."""
+    name = key.replace(":", "_").replace("+", "_")
+    if int8 is not None and int8.keep_float:
+        import hashlib
+
+        name += "_f32_" + hashlib.sha1(repr(int8.keep_float).encode()).hexdigest()[:8]
+    return name
 
 
 def _predict(workdir, config, step, source, runtime, precision, int8, out, threads, batches):
@@ -166,7 +183,7 @@ def guard_workdir(args) -> dict:
             )
             print(f"=== {key} on {frames} frames of {root} ({split}) ===", flush=True)
             int8 = _settings(args, heading) if precision == "int8" else None
-            out = base / key.replace(":", "_").replace("+", "_")
+            out = base / _folder(key, int8)
             dets, ms, detector = _predict(
                 workdir, config, args.step, source, runtime, precision, int8, out, threads, batches
             )
