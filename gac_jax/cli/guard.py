@@ -96,12 +96,15 @@ def _settings(args, keep_heading: bool):
 
 
 def _folder(key: str, int8) -> str:
-    """Result folder name of a candidate; int8 with a float32 scope gets its hash too."""
+    """Result folder name of a candidate; int8 with other than the default calibration or a
+    float32 scope gets a hash of its settings too."""
+    from gac_jax.deploy.int8 import Int8Settings
+
     name = key.replace(":", "_").replace("+", "_")
-    if int8 is not None and int8.keep_float:
+    if int8 is not None and int8 != Int8Settings(keep_heading=int8.keep_heading):
         import hashlib
 
-        name += "_f32_" + hashlib.sha1(repr(int8.keep_float).encode()).hexdigest()[:8]
+        name += "_" + hashlib.sha1(repr(int8).encode()).hexdigest()[:8]
     return name
 
 
