@@ -55,12 +55,10 @@ def test_guard_writes_undecided_verdicts_with_the_frames_needed(guarded, capsys)
 def test_int8_keep_heading_keeps_the_heading_convs_in_float32(guarded):
     wd, _ = guarded
     out = wd / "export" / "step2"
-    assert int8.output_convs(out / "model.onnx", int8.HEADING_OUTPUTS) == [
-        "head/cls_out",
-        "head/reg_out",
-    ]
+    names = ["backbone/conv1", "head/cls_out", "head/reg_out"]
+    assert int8.heading_convs(out / "model.onnx") == names
     block = artifact.read_export(out)["int8"]
-    assert block["keep_float"] == [r"head/cls_out\b", r"head/reg_out\b"]
+    assert block["keep_float"] == [n + r"\b" for n in names]
     ov = pytest.importorskip("openvino")
     model = ov.Core().read_model(str(out / int8.INT8_MODEL))
     quantized = {
@@ -87,8 +85,8 @@ def test_int8_keep_heading_keeps_the_heading_convs_in_float32(guarded):
             seen += [v.get_node() for v in node.input_values()]
         return False
 
-    assert not weight_quantized("head/reg_out") and not weight_quantized("head/cls_out")
-    assert weight_quantized("head/cls_conv1")
+    assert not any(weight_quantized(n) for n in names)
+    assert weight_quantized("head/cls_conv1") and weight_quantized("backbone/layer1_0/conv1")
 
 
 def test_evaluate_says_which_precision_and_what_the_guard_decided(guarded, capsys):
