@@ -25,8 +25,9 @@ converted authors' model on real frames).
 
 A detector guard's difference is only as good as its frame count: ``--bootstrap N`` (default
 200) gives every entry's paired-frame-bootstrap standard error and decides the ~95 % verdict
-(within / beyond / undecided; ``guard_folds.py``); ``--folds K`` adds the spread a guard of
-``1/K`` of the frames would see. ``--guard-data DIR`` evaluates on a larger generated set.
+(within / beyond / undecided; :mod:`gac_jax.evaluation.ap_resampling`); ``--folds K`` adds
+the spread a guard of ``1/K`` of the frames would see. ``--guard-data DIR`` evaluates on a
+larger generated set.
 """
 
 from __future__ import annotations
@@ -46,16 +47,16 @@ from gac_jax.cpu_backend import apply_default_xla_flags  # noqa: E402
 
 apply_default_xla_flags()
 
-from guard_folds import (  # noqa: E402  (benchmarks/ on sys.path)
-    bootstrap_differences,
-    car_ap40,
-    fold_differences,
-)
 from machine_info import describe_machine, one_line  # noqa: E402
 
 from gac_jax.data.files import KittiFormatError  # noqa: E402
 from gac_jax.deploy.int8 import DEFAULT_FRAMES, Int8Settings  # noqa: E402
 from gac_jax.deploy.runtimes import RuntimeUnavailableError, check_runtime  # noqa: E402
+from gac_jax.evaluation.ap_resampling import (  # noqa: E402
+    bootstrap_differences,
+    car_ap40,
+    fold_differences,
+)
 
 COMBOS = (
     ("jax", "f32"),
@@ -67,7 +68,6 @@ COMBOS = (
 )
 REPO = Path(__file__).resolve().parents[1]
 REAL_FRAMES = REPO / "tests" / "data" / "kitti" / "object"  # split "labeled"
-MATCH_IOU = 0.5
 AP_TOLERANCE = 0.5  # AP points, every Car AP|R40 entry
 SILOG_TOLERANCE = 0.2
 
@@ -166,7 +166,7 @@ def guard_detector(
 ) -> dict:
     """Every combo on the run's val split (or ``data``'s ``split``); ``k`` >= 2 folds add
     each entry's fold spread, ``boots`` >= 2 bootstrap resamples its standard error, each
-    with the ~95 % verdict of :mod:`guard_folds`."""
+    with the ~95 % verdict of :mod:`gac_jax.evaluation.ap_resampling`."""
     runs, result_dirs = {}, {}
     where = {"data_root": data} if data else None
     for combo in combos:
@@ -199,9 +199,10 @@ def guard_detector(
 
 
 def detector_spread(result_dirs: dict[str, Path], k: int, boots: int) -> dict:
-    """:func:`guard_folds.fold_differences` (``k`` >= 2) and
-    :func:`guard_folds.bootstrap_differences` (``boots`` >= 2) of every combo against jax f32
-    (the frames and labels of the evaluation, from the result folder's ``run.json``)."""
+    """:func:`~gac_jax.evaluation.ap_resampling.fold_differences` (``k`` >= 2) and
+    :func:`~gac_jax.evaluation.ap_resampling.bootstrap_differences` (``boots`` >= 2) of every
+    combo against jax f32 (the frames and labels of the evaluation, from the result folder's
+    ``run.json``)."""
     from gac_jax.data.kitti import KittiObjectLayout, read_split
 
     ref = result_dirs["jax f32"]
@@ -279,38 +280,31 @@ def guard_depth(workdir: str, split, tmp: Path, combos: list[Combo]) -> dict:
 
 
 def match_detections(reference: Path, other: Path) -> dict:
-    """Detections of ``other`` matched to ``reference``'s (result folders of the same frames):
-    same class, 2D IoU >= 0.5, greedily in the reference's score order."""
+    """Detections of ``other`` matched to ``reference``'s (result folders of the same frames;
+    :func:`gac_jax.evaluation.paired_guard.match_detections`: same class, 2D IoU >= 0.5,
+    greedily in the reference's score order)."""
     import numpy as np
 
     from gac_jax.data.kitti import read_label
-    from gac_jax.detection.nms import box_iou_matrix
+    from gac_jax.evaluation.paired_guard import match_detections as match
 
     n_ref = n_other = matched = 0
     score_d, loc_d = [], []
     for path in sorted(reference.glob("*.txt")):
         a, b = read_label(path, True), read_label(other / path.name, True)
         n_ref, n_other = n_ref + len(a), n_other + len(b)
-        if not len(a) or not len(b):
-            continue
-        iou = box_iou_matrix(a.bbox, b.bbox)
-        iou[a.type[:, None] != b.type[None, :]] = 0.0
-        free = np.ones(len(b), bool)
-        for i in np.argsort(-a.score):
-            j = int(np.argmax(np.where(free, iou[i], -1.0)))
-            if free[j] and iou[i, j] >= MATCH_IOU:
-                free[j] = False
-                matched += 1
-                score_d.append(abs(float(a.score[i] - b.score[j])))
-                loc_d.append(float(np.linalg.norm(a.location[i] - b.location[j])))
+        i, j = match(a, b)
+        matched += len(i)
+        score_d += list(np.abs(a.score[i] - b.score[j]))
+        loc_d += list(np.linalg.norm(a.location[i] - b.location[j], axis=-1))
     return {
         "reference_detections": n_ref,
         "detections": n_other,
         "matched": matched,
         "matched_share": matched / max(n_ref, 1),
-        "max_score_diff": max(score_d, default=0.0),
+        "max_score_diff": float(max(score_d, default=0.0)),
         "median_score_diff": float(np.median(score_d)) if score_d else 0.0,
-        "max_location_diff_m": max(loc_d, default=0.0),
+        "max_location_diff_m": float(max(loc_d, default=0.0)),
         "median_location_diff_m": float(np.median(loc_d)) if loc_d else 0.0,
     }
 
@@ -379,7 +373,7 @@ def main() -> None:
         type=int,
         default=5,
         help="detector: disjoint frame folds for the fold spread and the ~95%% verdict "
-        "(benchmarks/guard_folds.py; default 5, 0 = off)",
+        "(gac_jax.evaluation.ap_resampling; default 5, 0 = off)",
     )
     parser.add_argument(
         "--bootstrap",

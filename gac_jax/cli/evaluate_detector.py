@@ -34,6 +34,7 @@ from gac_jax.builders.datasets import prepare_dataset
 from gac_jax.cli.model_mode import limit_cpu_threads, xla_thread_count
 from gac_jax.data.files import KittiFormatError, atomic_write
 from gac_jax.data.sources import open_object_source
+from gac_jax.deploy.guard_verdict import precision_line
 from gac_jax.deploy.int8 import Int8Settings, int8_settings
 from gac_jax.deploy.runtime_choice import resolve_runtime, run_suffix, use_runtime
 from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
@@ -200,6 +201,7 @@ def evaluate_detector_workdir(
             int8=int8,
         )
     _check_resumable(out / "run.json", settings)
+    print(precision_line(workdir, detector, runtime, precision, int8, export_dir), flush=True)
     ids = evaluator.frame_ids()
     resumed = sum((result_dir / f"{fid}.txt").exists() for fid in ids)
     print(

@@ -24,6 +24,19 @@ every convolution by its Flax path (detector: ``backbone/layer1_0/conv1``, ``hea
 ``head/(cls|reg)_out`` its two output convs. A pattern that matches no node is refused (the
 message lists the layer prefixes), so a scope cannot silently stop applying when the model
 changes. ``benchmarks/bench_int8_sensitivity.py`` measures which blocks cost the AP.
+
+Heading kept in float32 (``keep_heading``, ``--int8-keep-heading``): adds to the float32
+scope the first convolution on the image input (the stem, ``backbone/conv1``) and the
+convolutions that produce the outputs the heading is decoded from (:data:`HEADING_OUTPUTS`:
+the alpha sign bit and the orientation residuals, :mod:`gac_jax.detection.box_coding`;
+detector: ``head/cls_out`` and ``head/reg_out``), all found by walking the exported graph
+from that input and back from those outputs to the nearest convolution, not listed by hand.
+Measured with the paired guard (``python -m gac_jax.cli.guard``, default detector, step 400,
+300 frames): with the output convs alone in float32 int8 lost as many headings as full int8
+(moderate: 15 objects lost / 4 gained vs 12 / 5; 95th percentile of the heading change of
+matched detections 6.7 vs 7.0 deg); with the stem in float32 the losses and gains balanced
+(5 / 6) and that percentile fell to 1.9 deg: the quantized image and stem, not the head,
+carry most of the heading's int8 error.
 """
 
 from __future__ import annotations
@@ -55,16 +68,22 @@ DEFAULT_FRAMES = 16
 DEFAULT_SEED = 0
 # what a stored int8 model must agree on with the requested one (else it is rebuilt)
 COMPARED = ("source_sha256", "calibration", "preset", "keep_float")
+# the network outputs the heading is decoded from (sign bit; sin/cos residual channels) and
+# the input whose first conv's quantization moves it most (measured, module docstring)
+HEADING_OUTPUTS = ("sign_logits", "reg")
+HEADING_INPUTS = ("images",)
 
 
 @dataclasses.dataclass(frozen=True)
 class Int8Settings:
     """How the int8 model is calibrated: ``frames`` training images drawn with ``seed``;
-    ``keep_float``: node-name patterns kept in float32 (see the module docstring)."""
+    ``keep_float``: node-name patterns kept in float32; ``keep_heading``: also the convs
+    that produce the heading outputs (see the module docstring)."""
 
     frames: int = DEFAULT_FRAMES
     seed: int = DEFAULT_SEED
     keep_float: tuple[str, ...] = ()
+    keep_heading: bool = False
 
     def __post_init__(self):
         if self.frames < 1:
@@ -78,7 +97,7 @@ class Int8Settings:
                 ) from None
 
 
-INT8_OPTIONS = ("int8_frames", "int8_seed", "int8_keep_float")
+INT8_OPTIONS = ("int8_frames", "int8_seed", "int8_keep_float", "int8_keep_heading")
 
 
 def add_int8_arguments(parser) -> None:
@@ -101,6 +120,13 @@ def add_int8_arguments(parser) -> None:
         help="--precision int8: keep the layers whose names match in float32 (repeatable; "
         "names are Flax paths, e.g. 'head/.*' or 'head/(cls|reg)_out.*')",
     )
+    parser.add_argument(
+        "--int8-keep-heading",
+        action="store_true",
+        default=None,
+        help="--precision int8: keep the stem (first conv on the image) and the convs that "
+        "produce the heading (alpha sign bit, orientation residuals) in float32",
+    )
 
 
 def int8_settings(args) -> Int8Settings | None:
@@ -122,6 +148,7 @@ def int8_settings(args) -> Int8Settings | None:
         frames=DEFAULT_FRAMES if frames is None else frames,
         seed=DEFAULT_SEED if seed is None else seed,
         keep_float=tuple(getattr(args, "int8_keep_float", None) or ()),
+        keep_heading=bool(getattr(args, "int8_keep_heading", None)),
     )
 
 
@@ -188,6 +215,54 @@ def calibration_frames(task: str, config, frames: int, seed: int) -> tuple[list[
 # ----------------------------------------------------------------------------- quantization
 
 
+def nearest_convs(onnx_path: Path, tensors: tuple[str, ...], backwards: bool) -> list[str]:
+    """Names of the Conv nodes nearest to graph tensors (inputs or outputs) of an ONNX model:
+    walking from each tensor through the other nodes (``backwards``: towards the inputs, from
+    an output; else towards the outputs, from an input), the first Conv on every path."""
+    import onnx
+
+    graph = onnx.load(str(onnx_path), load_external_data=False).graph
+    step: dict[str, list] = {}
+    for node in graph.node:
+        for t in node.output if backwards else node.input:
+            step.setdefault(t, []).append(node)
+    missing = [t for t in tensors if t not in step]
+    if missing:
+        raise ValueError(f"{onnx_path}: no tensor {', '.join(missing)} (heading scope)")
+    found, seen, todo = set(), set(), list(tensors)
+    while todo:
+        for node in step.get(todo.pop(), []):
+            if id(node) in seen:
+                continue
+            seen.add(id(node))
+            if node.op_type == "Conv":
+                found.add(node.name)
+            else:
+                todo.extend(node.input if backwards else node.output)
+    return sorted(found)
+
+
+def heading_convs(onnx_path: Path) -> list[str]:
+    """The convs ``keep_heading`` keeps in float32: the first conv on the image input (the
+    stem, whose quantized input and weights carry most of int8's heading and 2D error) and
+    the convs that produce :data:`HEADING_OUTPUTS` (module docstring)."""
+    return sorted(
+        {
+            *nearest_convs(onnx_path, HEADING_INPUTS, backwards=False),
+            *nearest_convs(onnx_path, HEADING_OUTPUTS, backwards=True),
+        }
+    )
+
+
+def float_scope(onnx_path: Path, settings: Int8Settings) -> tuple[str, ...]:
+    """The patterns kept in float32: ``keep_float`` plus, with ``keep_heading``, one exact
+    pattern per conv of :func:`heading_convs`."""
+    scope = list(settings.keep_float)
+    if settings.keep_heading:
+        scope += [re.escape(n) + r"\b" for n in heading_convs(onnx_path)]
+    return tuple(scope)
+
+
 def check_keep_float(model, keep_float: tuple[str, ...]) -> None:
     """Refuses a ``keep_float`` pattern that matches no node of the OpenVINO ``model``.
 
@@ -244,12 +319,12 @@ def _save_atomic(model, out: Path) -> dict[str, str]:
     return sums
 
 
-def _wanted(meta: dict, calibration: dict, settings: Int8Settings) -> dict:
+def _wanted(meta: dict, calibration: dict, scope: tuple[str, ...]) -> dict:
     return {
         "source_sha256": meta["sha256"],
         "calibration": calibration,
         "preset": PRESET,
-        "keep_float": list(settings.keep_float),
+        "keep_float": list(scope),
     }
 
 
@@ -281,19 +356,20 @@ def ensure_int8(out_dir: str | os.PathLike, task: str, config, settings: Int8Set
     out = Path(out_dir)
     meta = artifact.read_export(out)
     calibration = _calibration_key(task, config, settings)
-    wanted = _wanted(meta, calibration, settings)
+    scope = float_scope(out / artifact.MODEL_FILE, settings)
+    wanted = _wanted(meta, calibration, scope)
     why = _why_rebuild(out, meta.get("int8"), wanted)
     if why is None:
         return out / INT8_MODEL
-    if settings.keep_float:  # refuse a bad pattern before announcing the build
+    if scope:  # refuse a bad pattern before announcing the build
         ov = import_openvino()
 
-        check_keep_float(ov.Core().read_model(str(out / artifact.MODEL_FILE)), settings.keep_float)
+        check_keep_float(ov.Core().read_model(str(out / artifact.MODEL_FILE)), scope)
     print(f"{out / INT8_MODEL}: {why}; quantizing (NNCF, {settings.frames} calibration frames)")
     t0 = time.perf_counter()
     feeds, described = calibration_frames(task, config, settings.frames, settings.seed)
     try:
-        model = quantize_model(out / artifact.MODEL_FILE, feeds, settings.keep_float)
+        model = quantize_model(out / artifact.MODEL_FILE, feeds, scope)
     except ValueError:  # a keep_float pattern that matches nothing: the caller's message
         raise
     except Exception as e:  # NNCF / OpenVINO raise their own types

@@ -1,0 +1,118 @@
+"""The guard command (gac_jax.cli.guard) and int8 with the heading kept, end to end.
+
+On a copy of the tiny trained workdir (4 real KITTI frames): the guard runs jax float32 and
+the candidates, writes ``guard.json`` beside the export (undecided: 4 frames are far too few,
+with the frames that would decide), the int8 model keeps exactly the heading convs in float32
+(found in the exported graph), and ``evaluate.py`` says which precision it runs and what the
+guard decided for it ("not guarded" for one the guard did not see). Skipped without the
+deploy extra or NNCF.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+pytest.importorskip("onnx", reason="deploy extra (onnx) not installed")
+pytest.importorskip("openvino", reason="deploy extra (openvino) not installed")
+pytest.importorskip("nncf", reason="deploy extra (nncf) not installed")
+
+from gac_jax.cli import evaluate as evaluate_cli  # noqa: E402
+from gac_jax.cli import guard  # noqa: E402
+from gac_jax.deploy import guard_verdict, int8  # noqa: E402
+from gac_jax.deploy.export import artifact  # noqa: E402
+
+FRAMES = "3"
+
+
+@pytest.fixture(scope="module")
+def guarded(tiny_detect3d_workdir, tmp_path_factory):
+    wd = tmp_path_factory.mktemp("guard") / "wd"
+    shutil.copytree(tiny_detect3d_workdir, wd, ignore=shutil.ignore_patterns("eval", "export"))
+    argv = ["--workdir", str(wd), "--candidates", "onnxruntime:f32,openvino:int8+heading"]
+    argv += ["--int8-frames", FRAMES, "--json", str(wd.parent / "guard_report.json")]
+    assert guard.main(argv) == 0
+    return wd, json.loads((wd.parent / "guard_report.json").read_text())
+
+
+def test_guard_writes_undecided_verdicts_with_the_frames_needed(guarded, capsys):
+    wd, report = guarded
+    data = guard_verdict.read_guard(wd / "export" / "step2")
+    assert set(data["verdicts"]) == {"onnxruntime:f32", "openvino:int8+heading"}
+    assert data["model"]["weights"] == "step2" and data["model"]["onnx_sha256"]
+    for entry in data["verdicts"].values():
+        assert entry["verdict"] == "undecided" and entry["frames"] == 4
+        assert entry["frames_needed"] is None or entry["frames_needed"] > 4
+        assert "too few objects" in entry["reason"]
+    # ONNX Runtime float32 finds exactly the objects jax float32 finds
+    crit = report["candidates"]["onnxruntime:f32"]["decision"]["criteria"]
+    assert all(r["ref_only"] == r["cand_only"] == 0 for r in crit.values())
+    assert data["verdicts"]["openvino:int8+heading"]["int8"]["keep_heading"] is True
+
+
+def test_int8_keep_heading_keeps_the_heading_convs_in_float32(guarded):
+    wd, _ = guarded
+    out = wd / "export" / "step2"
+    names = ["backbone/conv1", "head/cls_out", "head/reg_out"]
+    assert int8.heading_convs(out / "model.onnx") == names
+    block = artifact.read_export(out)["int8"]
+    assert block["keep_float"] == [n + r"\b" for n in names]
+    ov = pytest.importorskip("openvino")
+    model = ov.Core().read_model(str(out / int8.INT8_MODEL))
+    quantized = {
+        n.get_friendly_name()
+        for n in model.get_ordered_ops()
+        if n.get_type_name() == "FakeQuantize" or "FakeConvert" in n.get_type_name()
+    }
+    convs = {  # OpenVINO names a conv with a bias '<onnx name>/WithoutBiases'
+        n.get_friendly_name().removesuffix("/WithoutBiases"): n
+        for n in model.get_ordered_ops()
+        if n.get_type_name() == "Convolution"
+    }
+    assert quantized and "head/reg_out" in convs and "head/cls_out" in convs
+
+    def weight_quantized(name: str) -> bool:  # an int8 constant behind the conv's weights
+        seen = [convs[name].input_value(1).get_node()]
+        while seen:
+            node = seen.pop()
+            if node.get_type_name() == "Constant" and node.get_element_type().get_type_name() in (
+                "i8",
+                "u8",
+            ):
+                return True
+            seen += [v.get_node() for v in node.input_values()]
+        return False
+
+    assert not any(weight_quantized(n) for n in names)
+    assert weight_quantized("head/cls_conv1") and weight_quantized("backbone/layer1_0/conv1")
+
+
+def test_evaluate_says_which_precision_and_what_the_guard_decided(guarded, capsys):
+    wd, _ = guarded
+    base = ["--task", "detect3d", "--workdir", str(wd)]
+    assert evaluate_cli.main([*base, "--runtime", "onnxruntime"]) == 0
+    assert "precision: onnxruntime float32; guard: undecided on 4 frames" in capsys.readouterr().out
+    heading = ["--precision", "int8", "--int8-keep-heading", "--int8-frames", FRAMES]
+    assert evaluate_cli.main([*base, "--runtime", "openvino", *heading]) == 0
+    out = capsys.readouterr().out
+    assert "precision: openvino int8 (heading kept in float32); guard: undecided" in out
+    # other calibration settings: a different int8 model, not the guarded one
+    other = ["--precision", "int8", "--int8-keep-heading", "--int8-frames", "2"]
+    shutil.rmtree(wd / "eval" / "labeled_step2_openvino_int8")  # results of other settings
+    assert evaluate_cli.main([*base, "--runtime", "openvino", *other]) == 0
+    assert "not guarded for these weights" in capsys.readouterr().out
+
+
+def test_bad_candidates_are_one_line(capsys, tmp_path):
+    for text, words in (
+        ("openvino", "RUNTIME:PRECISION"),
+        ("openvino:bf16+heading", "only int8"),
+        ("jax:f32", "reference"),
+    ):
+        with pytest.raises(SystemExit) as info:
+            guard.main(["--workdir", str(tmp_path), "--candidates", text])
+        assert info.value.code == 2 and words in capsys.readouterr().err
+    assert guard.main(["--workdir", str(tmp_path), "--candidates", "openvino:f32"]) == 2
+    assert "not a trained workdir" in capsys.readouterr().err
