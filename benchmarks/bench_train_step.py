@@ -14,16 +14,6 @@ outputs, temporaries) next to what the device has. ``--compute-dtype bfloat16`` 
 
     python benchmarks/bench_train_step.py --configs paper --batch-sizes 8 --steps 0 \
         --compute-dtype bfloat16      # on a GPU: the need on that GPU, before a real run
-
-Side by side (``--compare``): one process times, interleaved round by round, the default
-detector (and the default depth U-Net) as JAX with the plain Flax ops (``--compare`` traces
-them under :func:`gac_jax.models.resnet.plain_formulation`: before), JAX as shipped (after)
-and the PyTorch twin of the detector (``tests/torch_reference_models.py``; the optional
-``.[torch]`` extra, skipped with a note when torch is missing): forward (train mode),
-forward + backward (gradient of the loss) and the full train step (+ AdamW and clipping),
-medians of wall and process-CPU seconds::
-
-    python benchmarks/bench_train_step.py --compare --rounds 5
 """
 
 from __future__ import annotations
@@ -100,20 +90,7 @@ def main() -> None:
     parser.add_argument("--compute-dtype", default="float32", choices=("float32", "bfloat16"))
     parser.add_argument("--json", help="write the results here")
     parser.add_argument("--case", help=argparse.SUPPRESS)  # internal: run one case
-    parser.add_argument("--compare", action="store_true", help="side by side (see above)")
-    parser.add_argument("--rounds", type=int, default=5, help="--compare: timed rounds")
-    parser.add_argument(
-        "--networks", default="detector,depth", help="--compare: detector and/or depth"
-    )
-    parser.add_argument("--no-torch", action="store_true", help="--compare: JAX only")
     args = parser.parse_args()
-    if args.compare:
-        from train_step_side_by_side import compare  # noqa: E402  (benchmarks/ on sys.path)
-
-        report = compare(args.networks.split(","), args.rounds, not args.no_torch)
-        if args.json:
-            Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
-        return
     if args.case:
         spec, bs = args.case.rsplit("@", 1)
         print(json.dumps(run_case(spec, int(bs), args.steps, args.compute_dtype)))

@@ -1,5 +1,5 @@
 """One detector training case for the train-step benchmarks: model, optimizer, state, the
-jitted step and a random batch (``bench_train_step.py`` and ``train_step_side_by_side.py``)."""
+jitted step and a random batch (``bench_train_step.py``)."""
 
 from __future__ import annotations
 
