@@ -44,6 +44,11 @@ class StreamRates:
         with self._lock:
             return np.array(self._read), np.array(self._done)
 
+    def latencies(self) -> np.ndarray:
+        """(N,) seconds from read to written of every frame written so far."""
+        read, done = self._arrays()
+        return done - read
+
     def summary(self, last_s: float | None = None) -> dict[str, float]:
         """``frames``, ``fps``, ``latency_median_ms``, ``latency_p95_ms`` and ``wall_s``: of all
         frames written, or of those written in the last ``last_s`` seconds (fps over that

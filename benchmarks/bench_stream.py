@@ -1,0 +1,239 @@
+"""The stream path end to end: video file in -> annotated video + result files out (CPU).
+
+For the default detector (configs/detect3d_default.py: ResNet-18/2 at 160x720) and the paper
+detector (configs/detect3d_kitti.py: ResNet-101 at 288x1280), per runtime and precision that
+runs on this machine (jax f32/bf16, onnxruntime f32, openvino f32/bf16/int8), a KITTI-size
+(1242x375) MPEG-4 video of the real KITTI sample frames goes through the stream pipeline of
+``python -m gac_jax.cli.predict --video`` (:class:`gac_jax.streams.pipeline.StreamPipeline`):
+decode, test transform, network, decoding + NMS + hill-climbing, drawing the 3D boxes and the
+bird's-eye view, MPEG-4 encoding of the annotated frame and the KITTI result file, with the
+five stages overlapping on threads. Weights are random (timing only; score threshold 0 and
+``top_k`` 100 as in bench_runtimes.py: 100 candidates per frame through NMS and
+hill-climbing, a crowded frame).
+
+Reported per row: sustained frames/s (frames written / wall time from the first frame's read
+to the last frame's write; the median over ``--rounds``) and per-frame latency (decode start
+to written; median and p95 over the frames of every round), plus the machine and its load.
+Export, int8 calibration and the first (compiling) frame are outside the timing.
+
+    python benchmarks/bench_stream.py [--configs default,paper] [--frames 120]
+        [--paper-frames 20] [--rounds 2] [--only 'jax f32,openvino int8'] [--batch-size 1]
+        [--threads N] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from machine_info import describe_machine, one_line  # benchmarks/ is on sys.path
+from random_weights import random_variables
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+from gac_jax.cpu_backend import apply_default_xla_flags  # noqa: E402
+
+apply_default_xla_flags()
+
+KITTI = REPO.parent / "shared" / "data" / "kitti_samples" / "object"
+CONFIGS = {
+    "default": "configs/detect3d_default.py",
+    "paper": "configs/detect3d_kitti.py",
+    "tiny": "configs/detect3d_default.py:tiny",  # a check of the script, not a result
+}
+COMBOS = (
+    ("jax", "f32"),
+    ("jax", "bf16"),
+    ("onnxruntime", "f32"),
+    ("openvino", "f32"),
+    ("openvino", "bf16"),
+    ("openvino", "int8"),
+)
+FRAME_SIZE = (375, 1242)  # KITTI's
+
+
+def make_video(path: Path, frames: int) -> tuple[Path, Path]:
+    """An MPEG-4 video of the KITTI sample frames (cropped/resized to 1242x375, cycled) and
+    the calibration of its first frame."""
+    import cv2
+
+    from gac_jax.data.files import read_image
+
+    images = sorted((KITTI / "training" / "image_2").glob("*.png"))
+    h, w = FRAME_SIZE
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (w, h))
+    for i in range(frames):
+        image = read_image(images[i % len(images)])[:h, :w]
+        if image.shape[:2] != (h, w):
+            image = cv2.resize(image, (w, h), interpolation=cv2.INTER_LINEAR)
+        writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    writer.release()
+    return path, KITTI / "training" / "calib" / f"{images[0].stem}.txt"
+
+
+def random_detector(name: str, tmp: Path):
+    """A :class:`LoadedDetector` of config ``name`` with random weights (priors from the
+    KITTI samples)."""
+    from gac_jax.builders import detect3d as builders
+    from gac_jax.config import apply_overrides, load_config
+    from gac_jax.detection.anchor_priors import make_detection_constants
+    from gac_jax.detection.anchors import generate_anchors
+    from gac_jax.trained.detector import LoadedDetector
+
+    config = load_config(str(REPO / CONFIGS[name]))
+    apply_overrides(
+        config,
+        [
+            "data.source=kitti",
+            f"data.root={KITTI}",
+            "data.train_split=labeled",
+            "anchors.prior_min_count=1",
+            "eval.score_threshold=0.0",
+            "eval.top_k=100",
+        ],
+    )
+    layout = builders.anchor_layout(config)
+    model = builders.build_model(config, layout.anchors_per_cell)
+    variables = random_variables(model, config, builders.init_variables)
+    priors = builders.compute_priors(config, KITTI, layout, tmp / f"priors_{name}")
+    constants = make_detection_constants(
+        generate_anchors(layout), priors, builders.sign_axis(config)
+    )
+    return LoadedDetector(config, model, constants, variables, "random weights", f"random_{name}")
+
+
+def run_stream(detector, video: Path, calib: Path, out: Path, batch_size: int) -> dict:
+    """One pass of the stream pipeline over ``video``; returns its rates and latencies."""
+    from gac_jax.streams import outputs, sources
+    from gac_jax.streams.pipeline import StreamPipeline
+
+    source = sources.VideoSource(video, sources.load_projection(calib), str(calib))
+    annotated = outputs.AnnotatedVideo(out / "annotated.mp4", source.fps)
+    results = outputs.KittiResults(out / "data")
+    pipeline = StreamPipeline(
+        source, detector, annotated, results, batch_size=batch_size, report_every=0
+    )
+    try:
+        report = pipeline.run()
+    finally:
+        annotated.close()
+        source.close()
+    if report.error is not None:
+        raise report.error
+    latencies = pipeline.rates.latencies().tolist()
+    return {"fps": report.rates["fps"], "latencies": latencies, "frames": report.written}
+
+
+def main() -> None:
+    import numpy as np
+
+    from gac_jax.api.detector import Detector3D
+    from gac_jax.deploy.runtimes import check_runtime, cpu_flags
+    from gac_jax.streams import sources
+    from gac_jax.streams.pipeline import warm_up
+    from gac_jax.streams.rates import percentile_ms
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--configs", default="default,paper")
+    p.add_argument("--frames", type=int, default=120, help="video frames (default detector)")
+    p.add_argument("--paper-frames", type=int, default=20, help="video frames (paper detector)")
+    p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--only", help="rows to run, e.g. 'jax f32,openvino int8' (default: all)")
+    p.add_argument("--batch-size", type=int, default=1)
+    p.add_argument("--threads", type=int, help="ONNX Runtime / OpenVINO threads")
+    p.add_argument("--json", type=Path)
+    args = p.parse_args()
+
+    sources.quiet_video_backend()
+    info = describe_machine("jax", "onnxruntime", "openvino", "cv2")
+    flags = cpu_flags()
+    print(one_line(info))
+    print(
+        f"CPU flags: AMX-BF16 {flags['amx_bf16']}, AMX-INT8 {flags['amx_int8']}, "
+        f"AVX512_BF16 {flags['avx512_bf16']}"
+    )
+    combos = [c for c in COMBOS if not args.only or " ".join(c) in args.only.split(",")]
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_stream_") as tmp:
+        tmp = Path(tmp)
+        for name in args.configs.split(","):
+            n = args.paper_frames if name == "paper" else args.frames
+            video, calib = make_video(tmp / f"input_{n}.mp4", n)
+            print(f"\n=== {name} detector ({CONFIGS[name]}), {n}-frame 1242x375 MPEG-4 video ===")
+            loaded = random_detector(name, tmp)
+            for runtime, precision in combos:
+                label = f"{runtime} {precision}"
+                try:
+                    check_runtime(runtime, precision)
+                except Exception as e:  # noqa: BLE001 - reported, not timed
+                    print(f"  skip {label}: {e}", flush=True)
+                    continue
+                t0 = time.perf_counter()
+                if runtime == "jax" and precision == "bf16":
+                    import dataclasses
+
+                    import jax.numpy as jnp
+
+                    loaded_here = dataclasses.replace(
+                        loaded, model=loaded.model.clone(dtype=jnp.bfloat16)
+                    )
+                else:
+                    loaded_here = loaded
+                detector = Detector3D(
+                    loaded_here,
+                    tmp / f"workdir_{name}",
+                    runtime,
+                    precision,
+                    threads=args.threads if runtime != "jax" else None,
+                    batch_size=args.batch_size,
+                )
+                source = sources.VideoSource(video, sources.load_projection(calib), str(calib))
+                warm_up(detector, source.read())
+                source.close()
+                setup = time.perf_counter() - t0
+                fps, latencies = [], []
+                for r in range(args.rounds):
+                    out = tmp / f"out_{name}_{runtime}_{precision}_{r}"
+                    result = run_stream(detector, video, calib, out, args.batch_size)
+                    assert result["frames"] == n, result["frames"]
+                    fps.append(result["fps"])
+                    latencies += result["latencies"]
+                row = {
+                    "config": name,
+                    "runtime": runtime,
+                    "precision": precision,
+                    "frames": n,
+                    "rounds": args.rounds,
+                    "fps_median": float(np.median(fps)),
+                    "fps_rounds": fps,
+                    "latency_median_ms": percentile_ms(latencies, 50),
+                    "latency_p95_ms": percentile_ms(latencies, 95),
+                    "setup_s": setup,
+                    "load_avg_1min": round(os.getloadavg()[0], 2),
+                }
+                rows.append(row)
+                print(
+                    f"  {label:17s} {row['fps_median']:6.2f} frames/s  latency median "
+                    f"{row['latency_median_ms']:7.0f} ms  p95 {row['latency_p95_ms']:7.0f} ms  "
+                    f"(rounds {', '.join(f'{f:.2f}' for f in fps)}; set-up {setup:.0f} s; "
+                    f"load {row['load_avg_1min']})",
+                    flush=True,
+                )
+            best = max((r for r in rows if r["config"] == name), key=lambda r: r["fps_median"])
+            print(
+                f"  fastest: {best['runtime']} {best['precision']} {best['fps_median']:.1f} "
+                "frames/s end to end"
+            )
+    info["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
+    print(f"\nload average (1 min) at the end: {info['load_avg_1min_end']}")
+    if args.json:
+        args.json.write_text(json.dumps({"machine": info, "cpu_flags": flags, "rows": rows}))
+
+
+if __name__ == "__main__":
+    main()
