@@ -2,19 +2,14 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import jax
 import ml_collections
 
 from gac_jax.data import transforms
+from gac_jax.data.cache import default_cache_dir
 from gac_jax.data.files import KittiFormatError
-
-
-def default_cache_dir() -> Path:
-    """``$GAC_JAX_CACHE`` or ``~/.cache/gac_jax``: where the embedded dataset is generated."""
-    return Path(os.environ.get("GAC_JAX_CACHE", Path.home() / ".cache" / "gac_jax"))
 
 
 def synthetic_config() -> ml_collections.ConfigDict:

@@ -1,8 +1,10 @@
 """Command line: ``python -m gac_jax.data.synthetic --out DIR --num N --seed S``.
 
 Writes (or completes) a synthetic KITTI-format dataset; see
-:mod:`gac_jax.data.synthetic.writer` for the layout. Running the same command
-again is a no-op once the dataset is complete, and resumes an interrupted run.
+:mod:`gac_jax.data.synthetic.writer` for the layout. With ``--sequences N
+--frames-per-sequence F`` instead of ``--num``, writes N driving clips at 10 Hz in the
+KITTI tracking layout (:mod:`gac_jax.data.synthetic.clips`). Running the same command
+again is a no-op once the output is complete, and resumes an interrupted run.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import time
 
 from gac_jax.data.files import KittiFormatError
 from gac_jax.data.io_errors import error_line
+from gac_jax.data.synthetic.clips import generate_clips
 from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
 from gac_jax.data.synthetic.writer import generate_dataset
 
@@ -73,12 +76,21 @@ def build_parser() -> argparse.ArgumentParser:
         description="Generate a synthetic KITTI-format driving dataset (3D objects + depth).",
     )
     p.add_argument("--out", required=True, help="output directory (created; must be empty or ours)")
-    p.add_argument("--num", required=True, type=_positive_int, help="number of frames")
+    p.add_argument("--num", type=_positive_int, help="number of frames (independent scenes)")
+    p.add_argument(
+        "--sequences",
+        type=_positive_int,
+        help="number of driving clips (KITTI tracking layout) instead of --num frames",
+    )
+    p.add_argument("--frames-per-sequence", type=_positive_int, help="frames of each clip (10 Hz)")
     p.add_argument("--seed", type=_non_negative_int, default=0, help="dataset seed (default 0)")
     p.add_argument("--height", type=_positive_int, default=375, help="image height (default 375)")
     p.add_argument("--width", type=_positive_int, default=1242, help="image width (default 1242)")
     p.add_argument(
-        "--val-fraction", type=_fraction, default=0.5, help="share of val frames (default 0.5)"
+        "--val-fraction",
+        type=_fraction,
+        default=None,
+        help="share of val frames (default 0.5; not for clips)",
     )
     p.add_argument(
         "--workers", type=_positive_int, default=None, help="processes (default: all cores)"
@@ -97,7 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("kitti", "multi"),
         default="kitti",
         help="camera rigs: kitti (KITTI's, 1.65 m, level; default) or multi (eight vehicles, "
-        "1.2-2.4 m, pitch -6..+7 deg, two held out into val_heldout; writes training/planes)",
+        "1.2-2.4 m, pitch -6..+7 deg, two held out into val_heldout; writes training/planes; "
+        "clips: one vehicle per sequence)",
     )
     p.add_argument(
         "--overwrite", action="store_true", help="replace a dataset made with other arguments"
@@ -106,9 +119,66 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Exactly one of --num and --sequences (with --frames-per-sequence); exits 2 otherwise."""
+    if args.sequences is None and args.frames_per_sequence is None:
+        if args.num is None:
+            parser.error("give --num N (frames) or --sequences N --frames-per-sequence F (clips)")
+        return
+    if args.num is not None:
+        parser.error("--num (frames) and --sequences (clips) exclude each other")
+    if args.sequences is None or args.frames_per_sequence is None:
+        parser.error("clips need both --sequences N and --frames-per-sequence F")
+    if args.val_fraction is not None:
+        parser.error("--val-fraction: clips have no splits")
+
+
+def _clips(args: argparse.Namespace, classes) -> int:
+    start = time.perf_counter()
+    try:
+        result = generate_clips(
+            args.out,
+            args.sequences,
+            args.frames_per_sequence,
+            args.seed,
+            rigs=args.rigs,
+            height=args.height,
+            width=args.width,
+            classes=classes,
+            workers=args.workers,
+            overwrite=args.overwrite,
+            progress=not args.quiet,
+            announce=None if args.quiet else print,
+        )
+    except (ValueError, OSError, KittiFormatError) as e:
+        message = error_line(e, args.out) if isinstance(e, OSError) else str(e)
+        print(f"error: {message}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted: run the same command again to finish the clips", file=sys.stderr)
+        return 130
+    took = time.perf_counter() - start
+    total = result.num_sequences * result.frames_per_sequence
+    if result.generated == 0:
+        print(
+            f"{result.root}: complete clips ({result.num_sequences} x "
+            f"{result.frames_per_sequence} frames) already there"
+        )
+    else:
+        print(
+            f"{result.root}: wrote {result.generated} of {total} clip frames "
+            f"in {took:.1f} s ({result.generated / took:.2f} frames/s)"
+        )
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _check_mode(parser, args)
     classes = dict(args.classes) if args.classes else None
+    if args.sequences is not None:
+        return _clips(args, classes)
     start = time.perf_counter()
     try:
         result = generate_dataset(
@@ -117,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
             args.seed,
             height=args.height,
             width=args.width,
-            val_fraction=args.val_fraction,
+            val_fraction=0.5 if args.val_fraction is None else args.val_fraction,
             classes=classes,
             rig_set=args.rigs,
             workers=args.workers,

@@ -13,7 +13,7 @@ import numpy as np
 
 from gac_jax.data.synthetic import shapes
 
-ROAD_END = 170.0  # buildings and sidewalks end here; a skyline closes the view behind
+ROAD_END = 170.0  # buildings and sidewalks end here (a clip extends it); a skyline closes the view
 PLASTER = np.array(
     [
         [0.80, 0.76, 0.66],
@@ -76,7 +76,7 @@ def build(b) -> None:
             colors = np.array([paving * 1.1] * 6)
             mats = np.full(6, shapes.FLAT)
             colors[shapes.TOP], mats[shapes.TOP] = paving, shapes.PAVING
-            b.add_road_solid(shapes.box(t0, t1, h - kerb, h + 0.3, -20.0, ROAD_END, colors, mats))
+            b.add_road_solid(shapes.box(t0, t1, h - kerb, h + 0.3, -20.0, b.road_end, colors, mats))
             _buildings(b, side, edge + side * width)
             if rng.random() < 0.5:
                 _trees(b, side, edge + side * 0.9, h - kerb, spacing=(8.0, 16.0))
@@ -87,9 +87,13 @@ def build(b) -> None:
                 t0, t1 = sorted((edge + side * 0.4, edge + side * 0.65))
                 grey = np.array([0.7, 0.7, 0.68]) * rng.uniform(0.8, 1.1)
                 b.add_road_solid(
-                    shapes.box(t0, t1, h - rng.uniform(0.6, 0.9), h + 0.2, -10.0, ROAD_END, grey)
+                    shapes.box(t0, t1, h - rng.uniform(0.6, 0.9), h + 0.2, -10.0, b.road_end, grey)
                 )
-                b.obstacles.append(Footprint(0.5 * (t0 + t1), 80.0, 90.0, 0.2, 0.0))
+                b.obstacles.append(
+                    Footprint(
+                        0.5 * (t0 + t1), (b.road_end - 10.0) / 2, (b.road_end + 10.0) / 2, 0.2, 0.0
+                    )
+                )
             _trees(b, side, edge + side * rng.uniform(2.0, 5.0), h, spacing=(5.0, 12.0))
             _poles(b, side, edge + side * 1.2, h)
     _skyline(
@@ -100,7 +104,7 @@ def build(b) -> None:
 def _buildings(b, side, front_t):
     rng, h = b.rng, b.h
     s = -25.0
-    while s < ROAD_END:
+    while s < b.road_end:
         width = rng.uniform(8.0, 28.0)
         setback = 0.0 if rng.random() < 0.6 else rng.uniform(0.5, 3.0)
         height = rng.uniform(5.0, 22.0)
@@ -128,7 +132,7 @@ def _buildings(b, side, front_t):
 def _trees(b, side, t, ground_y, spacing):
     rng = b.rng
     s = rng.uniform(-5.0, 10.0)
-    while s < ROAD_END - 20:
+    while s < b.road_end - 20:
         tt = t + side * rng.uniform(0.0, 0.4)
         trunk_h, crown_h, radius = (
             rng.uniform(1.8, 3.0),
@@ -153,7 +157,7 @@ def _trees(b, side, t, ground_y, spacing):
 def _poles(b, side, t, ground_y):
     rng = b.rng
     s = rng.uniform(0.0, 30.0)
-    while s < ROAD_END - 20:
+    while s < b.road_end - 20:
         grey = np.array([0.5, 0.5, 0.52]) * rng.uniform(0.6, 1.2)
         if rng.random() < 0.3:  # traffic sign
             top = ground_y - rng.uniform(2.2, 2.8)
@@ -180,7 +184,7 @@ def _skyline(b):
     trees = rng.random() < 0.5
     while t < 320.0:
         width = rng.uniform(15.0, 60.0)
-        s0 = ROAD_END + rng.uniform(0.0, 25.0)
+        s0 = b.road_end + rng.uniform(0.0, 25.0)
         height = rng.uniform(6.0, 18.0) if trees else rng.uniform(8.0, 35.0)
         if trees:
             color = np.array([0.14, 0.22, 0.10]) * rng.uniform(0.7, 1.4)

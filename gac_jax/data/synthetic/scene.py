@@ -123,7 +123,13 @@ class Scene:
         return np.stack([d[0] * R[0, k] + d[1] * R[1, k] + d[2] * R[2, k] for k in range(3)], -1)
 
 
-def _rotation_x(a: float) -> np.ndarray:
+def place_object(cls, dims, local_parts, loc, ry, support) -> SceneObject:
+    """A road user whose box-frame parts are turned by ``ry`` and moved to ``loc`` (camera)."""
+    R = rotation_y_matrix(ry)
+    return SceneObject(cls, dims, loc, ry, [p.transformed(R, loc) for p in local_parts], support)
+
+
+def rotation_x(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
@@ -132,7 +138,7 @@ def _normal(rng, mean, std, clip=2.5):
     return mean + std * float(np.clip(rng.standard_normal(), -clip, clip))
 
 
-class _Builder:
+class SceneBuilder:
     """Samples one scene; methods add road, roadside and road users in turn."""
 
     def __init__(self, rng, P2, image_size, counts, pitch, camera_height):
@@ -145,9 +151,11 @@ class _Builder:
             np.deg2rad(np.clip(rng.normal(0.0, 0.5), -1.0, 1.0)) if pitch is None else pitch
         )
         self.heading = np.deg2rad(np.clip(rng.normal(0.0, 3.0), -8.0, 8.0))
-        self.level_R = _rotation_x(self.pitch)
+        self.level_R = rotation_x(self.pitch)
         self.road_rotation = self.level_R @ rotation_y_matrix(self.heading)
         self.background: list[shapes.Solid] = []
+        self.road_solids: list[shapes.Solid] = []  # the background in road coordinates
+        self.road_end = roadside.ROAD_END  # how far the roadside is built (s, metres)
         self.objects: list[SceneObject] = []
         self.obstacles: list[Footprint] = []
 
@@ -221,6 +229,7 @@ class _Builder:
         )
 
     def add_road_solid(self, solid: shapes.Solid):
+        self.road_solids.append(solid)
         self.background.append(solid.transformed(self.road_rotation, self.road_translation))
 
     def roadside(self):
@@ -241,8 +250,13 @@ class _Builder:
             for _ in range(int(rng.integers(0, 3))):
                 self._place("Car", FAR_RANGE)
 
-    def _propose(self, cls):
-        """A position ``(t, s)``, heading ``psi`` (road frame) and support height for ``cls``."""
+    def propose(self, cls):
+        """A position ``(t, s)``, heading ``psi`` (road frame), support height and kind for ``cls``.
+
+        ``kind`` says where it is: ``parked``, ``lane`` (a car in its lane), ``stray`` (a car
+        at a random heading), ``cycle_lane``, ``crossing`` (on the zebra crossing),
+        ``sidewalk`` (walking along the road) or ``standing`` (at a random heading).
+        """
         rng, h = self.rng, self.h
         s = rng.uniform(2.0, 100.0)
         if cls == "Car":
@@ -250,27 +264,29 @@ class _Builder:
                 side = list(self.parking)[rng.integers(len(self.parking))]
                 t = self.parking[side] + rng.normal(0.0, 0.12)
                 psi = rng.choice([0.0, np.pi]) + np.deg2rad(rng.normal(0.0, 2.0))
+                kind = "parked"
             else:
                 centre, psi = self.lanes[rng.integers(len(self.lanes))]
                 t = centre + np.clip(rng.normal(0.0, 0.25), -0.5, 0.5)
                 psi += np.deg2rad(rng.normal(0.0, 3.0))
+                kind = "lane"
                 if rng.random() < 0.08:
-                    psi = rng.uniform(-np.pi, np.pi)
-            return t, s, psi, h
+                    psi, kind = rng.uniform(-np.pi, np.pi), "stray"
+            return t, s, psi, h, kind
         if cls == "Cyclist":
             if rng.random() < 0.8:
                 side = 1 if rng.random() < 0.7 or not any(p == np.pi for _, p in self.lanes) else -1
                 lanes = [c for c, p in self.lanes if (p == 0.0) == (side == 1)]
                 outer = max(lanes, key=abs) + side * (self.lane_w / 2 - 0.7)
                 psi = (0.0 if side == 1 else np.pi) + np.deg2rad(rng.normal(0.0, 4.0))
-                return outer + rng.normal(0.0, 0.15), s, psi, h
+                return outer + rng.normal(0.0, 0.15), s, psi, h, "cycle_lane"
             cls = "Pedestrian"  # on the sidewalk, like a pedestrian
         # pedestrians (and cyclists on the sidewalk)
         if self.crosswalk is not None and rng.random() < 0.3:
             s0, s1 = self.crosswalk
             t = rng.uniform(self.edges[-1] + 0.5, self.edges[1] - 0.5)
             psi = rng.choice([-np.pi / 2, np.pi / 2]) + np.deg2rad(rng.normal(0.0, 10.0))
-            return t, rng.uniform(s0 + 0.4, s1 - 0.4), psi, h
+            return t, rng.uniform(s0 + 0.4, s1 - 0.4), psi, h, "crossing"
         side = -1 if rng.random() < 0.5 else 1
         edge = self.edges[side]
         if self.sidewalk[side] > 0:
@@ -280,16 +296,19 @@ class _Builder:
             t = edge + side * rng.uniform(0.5, 2.0)
             support = h
         psi = rng.choice([0.0, np.pi]) + np.deg2rad(rng.normal(0.0, 15.0))
+        kind = "sidewalk"
         if rng.random() < 0.25:
-            psi = rng.uniform(-np.pi, np.pi)
-        return t, s, psi, support
+            psi, kind = rng.uniform(-np.pi, np.pi), "standing"
+        return t, s, psi, support, kind
+
+    def sample_dimensions(self, cls) -> np.ndarray:
+        """(3,) ``h, w, l`` of a road user of class ``cls`` (KITTI's statistics, cm steps)."""
+        return np.round(np.array([_normal(self.rng, m, sd) for m, sd in CLASS_SIZES[cls]]), 2)
 
     def _place(self, cls, depth_range, tries: int = 30):
-        rng = self.rng
         for _ in range(tries):
-            dims = np.array([_normal(rng, m, sd) for m, sd in CLASS_SIZES[cls]])
-            dims = np.round(dims, 2)
-            t, s, psi, support = self._propose(cls)
+            dims = self.sample_dimensions(cls)
+            t, s, psi, support, _ = self.propose(cls)
             foot = Footprint(t, s, dims[2] / 2, dims[1] / 2, psi)
             margin = 0.3 if cls == "Car" else 0.15
             if any(foot.overlaps(o, margin) for o in self.obstacles):
@@ -307,18 +326,18 @@ class _Builder:
             return
 
     def _make(self, cls, dims, loc, ry, support):
+        return place_object(cls, dims, self.object_parts(cls, dims), loc, ry, support)
+
+    def object_parts(self, cls, dims) -> list[shapes.Solid]:
+        """The part models of a road user of size ``dims`` (h, w, l) in its box frame."""
         rng = self.rng
         h, w, l = dims
         if cls == "Car":
             paint = PAINTS[rng.choice(len(PAINTS), p=PAINT_WEIGHTS)] * rng.uniform(0.9, 1.1)
-            parts = shapes.car_parts(h, w, l, np.clip(paint, 0, 1), rng)
-        elif cls == "Pedestrian":
-            parts = shapes.pedestrian_parts(h, w, l, rng)
-        else:
-            parts = shapes.cyclist_parts(h, w, l, rng)
-        R = rotation_y_matrix(ry)
-        parts = [p.transformed(R, loc) for p in parts]
-        return SceneObject(cls, dims, loc, ry, parts, support)
+            return shapes.car_parts(h, w, l, np.clip(paint, 0, 1), rng)
+        if cls == "Pedestrian":
+            return shapes.pedestrian_parts(h, w, l, rng)
+        return shapes.cyclist_parts(h, w, l, rng)
 
     # --------------------------------------------------------------- light
     def light(self) -> dict:
@@ -363,7 +382,7 @@ def sample_scene(
       pitch, camera_height: fix the camera pose (radians, metres) instead of
         sampling it (pitch ~ N(0, 0.5 deg) clipped to +-1 deg, height 1.65 +- 0.05 m).
     """
-    b = _Builder(
+    b = SceneBuilder(
         rng, P2, image_size, DEFAULT_COUNTS if counts is None else counts, pitch, camera_height
     )
     road = b.road()

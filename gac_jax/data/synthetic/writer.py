@@ -227,7 +227,7 @@ class _Job:
     split_of: dict[int, str]
 
 
-def _png(array: np.ndarray, png_filter: int, huffman_only: bool = False) -> bytes:
+def png_bytes(array: np.ndarray, png_filter: int, huffman_only: bool = False) -> bytes:
     """PNG bytes at compression level 1 with a fixed row filter (BGR for colour).
 
     Measured here: for the noisy colour renders a SUB filter with Huffman-only
@@ -258,11 +258,13 @@ def _write_frame(job: _Job, index: int) -> float:
         view = frame.views[cam]
         dense = files.depth_to_uint16(view.depth)
         sparse = np.where(frame.sparse[cam], dense, np.uint16(0))
-        files.write_bytes_atomic(paths[f"dense_{cam}"], _png(dense, cv2.IMWRITE_PNG_FILTER_UP))
-        files.write_bytes_atomic(paths[f"sparse_{cam}"], _png(sparse, cv2.IMWRITE_PNG_FILTER_NONE))
+        files.write_bytes_atomic(paths[f"dense_{cam}"], png_bytes(dense, cv2.IMWRITE_PNG_FILTER_UP))
+        files.write_bytes_atomic(
+            paths[f"sparse_{cam}"], png_bytes(sparse, cv2.IMWRITE_PNG_FILTER_NONE)
+        )
         image = cv2.cvtColor(view.image, cv2.COLOR_RGB2BGR)
         files.write_bytes_atomic(
-            paths[f"image_{cam}"], _png(image, cv2.IMWRITE_PNG_FILTER_SUB, True)
+            paths[f"image_{cam}"], png_bytes(image, cv2.IMWRITE_PNG_FILTER_SUB, True)
         )
         _link(paths[f"image_{cam}"], paths[f"raw_{cam}"])
     return time.perf_counter() - start
@@ -288,8 +290,20 @@ class GenerationResult:
 
 def _check_target(root: Path, spec: DatasetSpec, overwrite: bool) -> str:
     """Decides what to do with ``root``: 'done', 'resume' or 'fresh' (after cleaning our files)."""
-    want = spec.to_json()
-    done, marker = root / DONE, root / MARKER
+    return check_target(root, spec.to_json(), overwrite, DONE, MARKER, OWNED)
+
+
+def check_target(
+    root: Path, want: dict, overwrite: bool, done_name: str, marker_name: str, owned
+) -> str:
+    """'done', 'resume' or 'fresh' for a generated directory described by ``want``.
+
+    ``done_name`` (the description, written last) and ``marker_name`` (written first)
+    say what ``root`` holds; 'fresh' deletes the stale ``owned`` folders of our own
+    directory. Raises ValueError for a directory of other arguments (unless
+    ``overwrite``) or a non-empty directory that is not ours.
+    """
+    done, marker = root / done_name, root / marker_name
     if done.exists():
         have = _read_json(done)
         if have == want:
@@ -304,10 +318,10 @@ def _check_target(root: Path, spec: DatasetSpec, overwrite: bool) -> str:
             return "resume"
     elif root.exists() and any(root.iterdir()):
         raise ValueError(
-            f"{root} is not empty and holds no synthetic dataset ({DONE} missing); "
+            f"{root} is not empty and holds no synthetic dataset ({done_name} missing); "
             "refusing to write into it: choose an empty or new directory"
         )
-    for name in (*OWNED, DONE):  # our own, stale content
+    for name in (*owned, done_name):  # our own, stale content
         p = root / name
         if p.is_dir():
             shutil.rmtree(p)
@@ -413,7 +427,7 @@ def generate_dataset(
     with files.atomic_write(root / MARKER) as f:
         json.dump(spec.to_json(), f, indent=1)
     (root / DONE).unlink(missing_ok=True)  # incomplete until everything is back
-    _remove_temporaries(root)
+    remove_temporaries(root)
     if state != "fresh":
         todo = [
             i
@@ -437,15 +451,24 @@ def generate_dataset(
     return GenerationResult(root, num_frames, len(todo), seconds)
 
 
-def _remove_temporaries(root: Path) -> None:
+def remove_temporaries(root: Path, owned=OWNED) -> None:
     """Deletes half-written temporary files an interrupted run left behind."""
-    for sub in OWNED:
+    for sub in owned:
         if (root / sub).is_dir():
             for p in (root / sub).rglob(".*.tmp"):
                 p.unlink(missing_ok=True)
 
 
 def _run(job: _Job, todo: list[int], workers: int | None, progress: bool) -> list[float]:
+    return run_jobs(_write_frame, job, todo, workers, progress, "synthetic KITTI")
+
+
+def run_jobs(fn, job, todo: list, workers: int | None, progress: bool, desc: str) -> list[float]:
+    """Calls ``fn(job, item)`` for every item of ``todo`` in ``workers`` processes (default: one
+    per core; 1 = in this process), in order; returns what the calls returned (seconds).
+
+    The pool uses forkserver (spawn where there is none) and never outlives this process.
+    """
     if workers is None:
         workers = os.cpu_count() or 1
     if workers < 1:
@@ -454,12 +477,12 @@ def _run(job: _Job, todo: list[int], workers: int | None, progress: bool) -> lis
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(todo), unit="frame", desc="synthetic KITTI")
+        bar = tqdm(total=len(todo), unit="frame", desc=desc)
     seconds = []
     try:
         if workers == 1 or len(todo) <= 1:
-            for i in todo:
-                seconds.append(_write_frame(job, i))
+            for item in todo:
+                seconds.append(fn(job, item))
                 if bar is not None:
                     bar.update(1)
             return seconds
@@ -472,7 +495,7 @@ def _run(job: _Job, todo: list[int], workers: int | None, progress: bool) -> lis
             initializer=_init_worker,
             initargs=(Owner.current().token(),),
         ) as pool:
-            for dt in pool.map(_write_frame, [job] * len(todo), todo, chunksize=chunk):
+            for dt in pool.map(fn, [job] * len(todo), todo, chunksize=chunk):
                 seconds.append(dt)
                 if bar is not None:
                     bar.update(1)
