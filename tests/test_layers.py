@@ -11,6 +11,7 @@ the layers below it:
     builders    builders/ (config -> model, anchors, priors, transforms, evaluators)
     runs        trainers/, trained/ (a trained model from a run folder or converted weights)
     deploy      deploy/ (ONNX export, ONNX Runtime / OpenVINO)
+    streams     streams/ (video files, cameras, image sequences through a detector)
     cli         cli/ (evaluate, predict)
 
 Imports are read with ``ast`` from every ``.py`` file: module level, inside functions and
@@ -32,6 +33,7 @@ LAYERS = (
     ("builders", ("gac_jax.builders",)),
     ("runs", ("gac_jax.trainers", "gac_jax.trained")),
     ("deploy", ("gac_jax.deploy",)),
+    ("streams", ("gac_jax.streams",)),
     ("cli", ("gac_jax.cli",)),
 )
 

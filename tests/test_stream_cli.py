@@ -77,39 +77,56 @@ def folder_predict(workdir, images, calib, planes, tmp: Path, capsys) -> dict[st
     return {p.stem: p.read_text() for p in (tmp / "out" / "data").glob("*.txt")}
 
 
-def tracking_sequence(root: Path, images, calib, planes) -> Path:
-    folder = root / "training" / "image_02" / "0007"
-    for i, image in enumerate(images):
-        write_png(folder / f"{i:06d}.png", image)
-        if planes[i] is not None:
-            write_plane(root / "training" / "planes" / "0007" / f"{i:06d}.txt", planes[i])
-    write_calib(root / "training" / "calib" / "0007.txt", calib)
-    return folder
+@pytest.fixture
+def small_clip_set(tmp_path, monkeypatch) -> Path:
+    """``--clip`` generates a 1-sequence, 5-frame set into a temporary cache."""
+    from gac_jax.cli import predict_stream
+
+    monkeypatch.setenv("GAC_JAX_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(predict_stream, "CLIP_SEQUENCES", 1)
+    monkeypatch.setattr(predict_stream, "CLIP_FRAMES", 5)
+    return predict_stream.clip_sequence(0)
 
 
-def test_sequence_and_video_streams_give_the_image_predict_results(
-    tiny_detect3d_workdir, frames, calib, tmp_path, capsys
+def test_a_generated_clip_gives_the_image_predict_results(
+    tiny_detect3d_workdir, small_clip_set, tmp_path, capsys
 ):
-    """A tracking-layout sequence (calibration and per-frame planes found by themselves) and
-    a video written by OpenCV (its decoded frames as the reference): a playable annotated video
-    of every frame at the input's fps, and per-frame results equal to the image-folder path's."""
-    images = [frames[i % len(frames)] for i in range(6)]
-    planes = [None, np.array([0.0, -0.999, -0.0447, 1.60]), None, None, None, None]
-    planes[1] = planes[1] / np.linalg.norm(planes[1][:3])
+    """``--clip``: the generated tracking-layout sequence, its calibration and per-frame planes
+    found by themselves -> a playable annotated video of every frame at 10 frames/s, and
+    per-frame results equal to the image-folder path's (same frames, calibration, planes)."""
+    from gac_jax.data.kitti import read_plane
+
+    folder = small_clip_set
+    training = folder.parent.parent
+    images = [read_image(p) for p in sorted(folder.glob("*.png"))]
+    planes = [read_plane(p) for p in sorted((training / "planes" / folder.name).glob("*.txt"))]
+    assert len(images) == len(planes) == 5
+    calib = read_calib(training / "calib" / f"{folder.name}.txt")
     expected = folder_predict(
         tiny_detect3d_workdir, images, calib, planes, tmp_path / "ref", capsys
     )
-    folder = tracking_sequence(tmp_path / "tracking", images, calib, planes)
-    out = tmp_path / "seq"
-    code, stdout, err = run(
-        ["--workdir", tiny_detect3d_workdir, "--sequence", folder, "--out", out], capsys
-    )
+    out = tmp_path / "clip"
+    code, stdout, err = run(["--workdir", tiny_detect3d_workdir, "--clip", "--out", out], capsys)
     assert code == 0, err
     assert {p.stem: p.read_text() for p in (out / "data").glob("*.txt")} == expected
-    assert len(decoded_frames(out / "annotated.mp4")) == 6
+    assert len(decoded_frames(out / "annotated.mp4")) == 5
+    assert cv2.VideoCapture(str(out / "annotated.mp4")).get(cv2.CAP_PROP_FPS) == 10.0
     last = stdout.strip().splitlines()[-1]
-    assert last.startswith("6 frames -> ") and "frames/s, latency median" in last, stdout
+    assert last.startswith("5 frames -> ") and "frames/s, latency median" in last, stdout
+    # without the planes (the level camera) the results differ: the planes were used
+    no_planes = folder_predict(
+        tiny_detect3d_workdir, images, calib, [None] * 5, tmp_path / "level", capsys
+    )
+    assert no_planes != expected
 
+
+def test_a_video_file_gives_the_image_predict_results(
+    tiny_detect3d_workdir, frames, calib, tmp_path, capsys
+):
+    """A video written by OpenCV (its decoded frames as the reference): a playable annotated
+    video at the input's fps and per-frame results (KITTI files, or JSON lines) equal to the
+    image-folder path's."""
+    images = [frames[i % len(frames)] for i in range(6)]
     video = write_video(tmp_path / "input.avi", images, fps=12.0)
     decoded = decoded_frames(video)  # MJPG is lossy: the reference sees what the stream sees
     expected = folder_predict(

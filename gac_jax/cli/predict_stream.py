@@ -29,8 +29,8 @@ from pathlib import Path
 from gac_jax.data.files import KittiFormatError
 
 STREAM_SOURCES = ("video", "camera", "sequence", "clip")
-CLIP_SEQUENCES = 4  # sequences of the generated clip set
-CLIP_FRAMES = 60  # frames per generated sequence (6 s at KITTI's 10 Hz)
+CLIP_SEQUENCES = 2  # sequences of the generated clip set (--clip 0, --clip 1)
+CLIP_FRAMES = 60  # frames per sequence (6 s at 10 Hz; about 1 s per frame to generate)
 EXIT_INTERRUPTED = 130
 DEFAULT_FPS = 10.0  # a sequence's rate (KITTI records at 10 Hz), or a source's without one
 
@@ -47,7 +47,8 @@ def add_stream_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         nargs="?",
         const=0,
-        help="generated driving clip N (default 0; made into the cache on first use)",
+        help=f"generated driving clip N (0-{CLIP_SEQUENCES - 1}, default 0; {CLIP_FRAMES} "
+        "frames made into the cache on first use)",
     )
     group.add_argument("--plane", metavar="FILE", help="ground plane of every frame")
     group.add_argument("--out-video", metavar="FILE", help="annotated video (.mp4/.avi/...)")
@@ -101,10 +102,19 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
 
 
 def clip_sequence(index: int) -> Path:
-    """Folder of generated clip ``index`` (tracking layout), generated on first use."""
+    """Folder of sequence ``index`` of the generated clip set (:data:`CLIP_SEQUENCES` x
+    :data:`CLIP_FRAMES` frames in the cache, tracking layout), generated on first use."""
     from gac_jax.data.synthetic.clips import default_clip_dir, ensure_clips
 
-    root = ensure_clips(default_clip_dir(), max(CLIP_SEQUENCES, index + 1), CLIP_FRAMES)
+    if not 0 <= index < CLIP_SEQUENCES:
+        raise KittiFormatError(
+            "--clip", f"{index}: the generated set has sequences 0 to {CLIP_SEQUENCES - 1}"
+        )
+    try:
+        root = ensure_clips(None, CLIP_SEQUENCES, CLIP_FRAMES)
+    except ValueError as e:
+        where = default_clip_dir(CLIP_SEQUENCES, CLIP_FRAMES)
+        raise KittiFormatError(where, str(e).removeprefix(f"{where}: ")) from None
     return Path(root) / "training" / "image_02" / f"{index:04d}"
 
 
