@@ -1,7 +1,8 @@
 """Which runtime runs the network: ``--runtime jax|onnxruntime|openvino --precision f32|bf16|int8``.
 
-:func:`resolve_runtime` checks that a runtime/precision can run here; :func:`use_runtime`
-points a detector's evaluator at the exported network (exported into the run folder on first
+:func:`resolve_runtime` checks that a runtime/precision can run here; :func:`runtime_predict`
+is a detector's exported network as a predict function and :func:`use_runtime` points a
+detector's evaluator at it (exported into the run folder on first
 use, refused when stale; for ``int8`` quantized beside it, :mod:`gac_jax.deploy.int8`),
 :func:`runtime_predictor` does the same for a depth network.
 Decoding, NMS and hill-climbing stay the project's own code for every runtime.
@@ -96,31 +97,30 @@ def network_file(
             raise KittiFormatError(out / MODEL_FILE, str(e)) from None
 
 
-def use_runtime(
-    evaluator: DetectionEvaluator,
+def runtime_predict(
     detector: LoadedDetector,
     workdir: str | os.PathLike,
     runtime: str,
     precision: str,
+    batch_size: int,
     *,
     export_dir: str | os.PathLike | None = None,
     threads: int | None = None,
     int8: Int8Settings | None = None,
-) -> float:
-    """Points ``evaluator`` at the exported network in ``runtime`` (the jitted decoding,
-    top-k and host post-processing stay as they are); returns the load + warm-up seconds.
+):
+    """The exported network of ``detector`` in ``runtime`` as a predict function
+    (:class:`~gac_jax.deploy.runtimes.RuntimeDetectionPredict`: the call of
+    :func:`gac_jax.detection.inference.make_predict_fn`'s jitted function, with the config's
+    ``eval.top_k``, score threshold and ground filter), warmed up for ``batch_size`` images.
 
     The export in ``export_dir`` (default :func:`default_export_dir`) is written when absent
     and refused when stale or corrupted (:func:`gac_jax.deploy.export.sources.ensure_export`);
     for ``int8`` the quantized network beside it is built when missing or stale
     (:func:`gac_jax.deploy.int8.ensure_int8` with ``int8``, default settings if None).
     """
-    import time
-
     from gac_jax.deploy.export.sources import detector_source
     from gac_jax.deploy.runtimes import DETECTOR_OUTPUTS, OnnxNetwork, RuntimeDetectionPredict
 
-    t0 = time.perf_counter()
     config = detector.config
     out = Path(export_dir) if export_dir else default_export_dir(workdir, detector)
     source = detector_source(
@@ -141,18 +141,47 @@ def use_runtime(
         outputs=DETECTOR_OUTPUTS,
         image_size=size,
         threads=threads,
-        batch_size=evaluator.batch_size,
+        batch_size=batch_size,
     )
     predict = RuntimeDetectionPredict(
         network,
         detector.constants,
-        top_k=evaluator.top_k,
-        score_threshold=evaluator.postprocess_config.score_threshold,
+        top_k=config.eval.top_k,
+        score_threshold=config.eval.score_threshold,
         filter_options=filter_options(config),
         use_ground_filter=config.anchors.filter,
     )
-    predict.compile(evaluator.batch_size, size)
-    evaluator.predict = predict
+    predict.compile(batch_size, size)
+    return predict
+
+
+def use_runtime(
+    evaluator: DetectionEvaluator,
+    detector: LoadedDetector,
+    workdir: str | os.PathLike,
+    runtime: str,
+    precision: str,
+    *,
+    export_dir: str | os.PathLike | None = None,
+    threads: int | None = None,
+    int8: Int8Settings | None = None,
+) -> float:
+    """Points ``evaluator`` (made by :func:`gac_jax.trained.detector.evaluator_for`) at the
+    exported network in ``runtime`` (:func:`runtime_predict`; the jitted decoding, top-k and
+    host post-processing stay as they are); returns the load + warm-up seconds."""
+    import time
+
+    t0 = time.perf_counter()
+    evaluator.predict = runtime_predict(
+        detector,
+        workdir,
+        runtime,
+        precision,
+        evaluator.batch_size,
+        export_dir=export_dir,
+        threads=threads,
+        int8=int8,
+    )
     return time.perf_counter() - t0
 
 
