@@ -113,11 +113,6 @@ def test_a_generated_clip_gives_the_image_predict_results(
     assert cv2.VideoCapture(str(out / "annotated.mp4")).get(cv2.CAP_PROP_FPS) == 10.0
     last = stdout.strip().splitlines()[-1]
     assert last.startswith("5 frames -> ") and "frames/s, latency median" in last, stdout
-    # without the planes (the level camera) the results differ: the planes were used
-    no_planes = folder_predict(
-        tiny_detect3d_workdir, images, calib, [None] * 5, tmp_path / "level", capsys
-    )
-    assert no_planes != expected
 
 
 def test_a_video_file_gives_the_image_predict_results(
