@@ -111,8 +111,9 @@ def test_a_generated_clip_gives_the_image_predict_results(
     assert {p.stem: p.read_text() for p in (out / "data").glob("*.txt")} == expected
     assert len(decoded_frames(out / "annotated.mp4")) == 5
     assert cv2.VideoCapture(str(out / "annotated.mp4")).get(cv2.CAP_PROP_FPS) == 10.0
-    last = stdout.strip().splitlines()[-1]
-    assert last.startswith("5 frames -> ") and "frames/s, latency median" in last, stdout
+    summary = [line for line in stdout.splitlines() if line.startswith("5 frames -> ")]
+    assert len(summary) == 1 and "frames/s, latency median" in summary[0], stdout
+    assert "per frame, each stage" in stdout and "network" in stdout
 
 
 def test_a_video_file_gives_the_image_predict_results(

@@ -201,6 +201,9 @@ def summary_lines(report, written_to: list[str], detector, threads: int) -> list
         f"({detector.runtime} {detector.precision}, batch {detector.batch_size}, "
         f"{threads} CPU threads)"
     ]
+    if report.written:
+        busy = ", ".join(f"{k} {v:.0f} ms" for k, v in report.stage_ms.items())
+        lines.append(f"per frame, each stage (they overlap; the slowest sets the rate): {busy}")
     if report.dropped_live:
         lines.append(
             f"{report.dropped_live} of {report.delivered} delivered frames dropped (the "

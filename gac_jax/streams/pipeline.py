@@ -34,6 +34,7 @@ from gac_jax.streams.sources import Frame
 
 END = object()  # the last item of a queue
 READ, PREPARE, NETWORK, FINISH, WRITE = range(5)  # the stages, upstream first
+STAGE_NAMES = ("read", "prepare", "network", "finish+draw", "write")
 
 
 class LatestSlot:
@@ -78,7 +79,8 @@ class StreamReport:
       processed); dropped_in_flight: frames read but dropped by an abort; finished_after_stop:
       frames in flight when reading stopped that were then finished; interrupted: stopped
       before the source ended; rates: :meth:`StreamRates.summary`; error: the first failure
-      (a stage's exception, or the source's report of a damaged input), None if none.
+      (a stage's exception, or the source's report of a damaged input), None if none;
+      stage_ms: :meth:`StreamPipeline.stage_ms`.
     """
 
     delivered: int
@@ -89,6 +91,7 @@ class StreamReport:
     interrupted: bool
     rates: dict
     error: BaseException | None = None
+    stage_ms: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
 class StreamPipeline:
@@ -115,7 +118,7 @@ class StreamPipeline:
         *,
         realtime: bool = False,
         batch_size: int = 1,
-        queue_size: int = 4,
+        queue_size: int = 1,
         report_every: float = 5.0,
         log: Callable[[str], None] = print,
         draw: Callable = detection_picture,
@@ -138,6 +141,7 @@ class StreamPipeline:
         self.written_at_stop: int | None = None
         self._source_ended = False
         self.errors: list[BaseException] = []
+        self.busy_s = [0.0] * len(STAGE_NAMES)
 
     # ------------------------------------------------------------------ control
 
@@ -169,6 +173,19 @@ class StreamPipeline:
             self.errors.append(error)
         self._drop_from(rank)
 
+    def _busy(self, stage: int, t0: float) -> None:
+        self.busy_s[stage] += time.perf_counter() - t0  # one thread per stage: no lock
+
+    def stage_ms(self) -> dict[str, float]:
+        """Milliseconds each stage worked per frame (waits excluded; ``read`` includes a
+        paced source's waiting for the next frame): the slowest one sets the rate."""
+        read = max(self.delivered, 1)
+        done = max(self.written, 1)
+        return {
+            name: 1e3 * self.busy_s[i] / (read if i <= PREPARE else done)
+            for i, name in enumerate(STAGE_NAMES)
+        }
+
     def _drop(self, frames: list[Frame]) -> None:
         with self._lock:
             self.dropped_in_flight += len(frames)
@@ -178,7 +195,9 @@ class StreamPipeline:
     def _read(self) -> None:
         try:
             while not self._stop.is_set():
+                t0 = time.perf_counter()
                 frame = self.source.read()
+                self._busy(READ, t0)
                 if frame is None:
                     self._source_ended = True
                     self.source.check_complete()
@@ -199,7 +218,10 @@ class StreamPipeline:
                     self._drop(item[0])
                     continue
                 try:
-                    put(work(item))
+                    t0 = time.perf_counter()
+                    result = work(item)
+                    self._busy(rank, t0)
+                    put(result)
                 except Exception as e:
                     self._drop(item[0])
                     self._fail(e, rank)
@@ -237,7 +259,9 @@ class StreamPipeline:
                     continue
                 prepared = [p for _, p in batch]
                 try:
+                    t0 = time.perf_counter()
                     raw = self.detector.infer(prepared)
+                    self._busy(NETWORK, t0)
                 except Exception as e:
                     self._drop(frames)
                     self._fail(e, NETWORK)
@@ -267,6 +291,7 @@ class StreamPipeline:
                 self._drop(frames)
                 continue
             for k, (frame, (det, objects, picture)) in enumerate(zip(frames, drawn, strict=True)):
+                t0 = time.perf_counter()
                 try:
                     if self.video is not None:
                         self.video.write(picture)
@@ -279,6 +304,7 @@ class StreamPipeline:
                     failed = True
                     break
                 self.rates.frame_written(frame.t_read)
+                self._busy(WRITE, t0)
                 with self._lock:
                     self.written += 1
 
@@ -335,6 +361,7 @@ class StreamPipeline:
             interrupted=interrupted and not self._source_ended,
             rates=self.rates.summary(),
             error=self.errors[0] if self.errors else None,
+            stage_ms=self.stage_ms(),
         )
 
 
