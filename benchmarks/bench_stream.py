@@ -3,7 +3,7 @@
 For the default detector (configs/detect3d_default.py: ResNet-18/2 at 160x720) and the paper
 detector (configs/detect3d_kitti.py: ResNet-101 at 288x1280), per runtime and precision that
 runs on this machine (jax f32/bf16, onnxruntime f32, openvino f32/bf16/int8), a KITTI-size
-(1242x375) MPEG-4 video of the real KITTI sample frames goes through the stream pipeline of
+(1242x375) MPEG-4 video of the vendored real KITTI frames (tests/data/kitti) goes through the stream pipeline of
 ``python -m gac_jax.cli.predict --video`` (:class:`gac_jax.streams.pipeline.StreamPipeline`):
 decode, test transform, network, decoding + NMS + hill-climbing, drawing the 3D boxes and the
 bird's-eye view, MPEG-4 encoding of the annotated frame and the KITTI result file, with the
@@ -12,8 +12,10 @@ five stages overlapping on threads. Weights are random (timing only; score thres
 hill-climbing, a crowded frame).
 
 Reported per row: sustained frames/s (frames written / wall time from the first frame's read
-to the last frame's write; the median over ``--rounds``) and per-frame latency (decode start
-to written; median and p95 over the frames of every round), plus the machine and its load.
+to the last frame's write; the median over ``--rounds``), per-frame latency (decode start
+to written; median and p95 over the frames of every round) and the milliseconds each stage
+works per frame (stages overlap: the slowest one sets the rate), plus the machine and its
+load.
 Export, int8 calibration and the first (compiling) frame are outside the timing.
 
     python benchmarks/bench_stream.py [--configs default,paper] [--frames 120]
@@ -40,7 +42,7 @@ from gac_jax.cpu_backend import apply_default_xla_flags  # noqa: E402
 
 apply_default_xla_flags()
 
-KITTI = REPO.parent / "shared" / "data" / "kitti_samples" / "object"
+KITTI = REPO / "tests" / "data" / "kitti" / "object"  # the vendored real frames (split labeled)
 CONFIGS = {
     "default": "configs/detect3d_default.py",
     "paper": "configs/detect3d_kitti.py",
@@ -126,7 +128,12 @@ def run_stream(detector, video: Path, calib: Path, out: Path, batch_size: int) -
     if report.error is not None:
         raise report.error
     latencies = pipeline.rates.latencies().tolist()
-    return {"fps": report.rates["fps"], "latencies": latencies, "frames": report.written}
+    return {
+        "fps": report.rates["fps"],
+        "latencies": latencies,
+        "frames": report.written,
+        "stage_ms": report.stage_ms,
+    }
 
 
 def main() -> None:
@@ -196,13 +203,14 @@ def main() -> None:
                 warm_up(detector, source.read())
                 source.close()
                 setup = time.perf_counter() - t0
-                fps, latencies = [], []
+                fps, latencies, stages = [], [], []
                 for r in range(args.rounds):
                     out = tmp / f"out_{name}_{runtime}_{precision}_{r}"
                     result = run_stream(detector, video, calib, out, args.batch_size)
                     assert result["frames"] == n, result["frames"]
                     fps.append(result["fps"])
                     latencies += result["latencies"]
+                    stages.append(result["stage_ms"])
                 row = {
                     "config": name,
                     "runtime": runtime,
@@ -213,6 +221,7 @@ def main() -> None:
                     "fps_rounds": fps,
                     "latency_median_ms": percentile_ms(latencies, 50),
                     "latency_p95_ms": percentile_ms(latencies, 95),
+                    "stage_ms": {k: float(np.median([st[k] for st in stages])) for k in stages[0]},
                     "setup_s": setup,
                     "load_avg_1min": round(os.getloadavg()[0], 2),
                 }
@@ -224,6 +233,8 @@ def main() -> None:
                     f"load {row['load_avg_1min']})",
                     flush=True,
                 )
+                busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_ms"].items())
+                print(f"    ms per frame, each stage (overlapping): {busy}", flush=True)
             best = max((r for r in rows if r["config"] == name), key=lambda r: r["fps_median"])
             print(
                 f"  fastest: {best['runtime']} {best['precision']} {best['fps_median']:.1f} "
