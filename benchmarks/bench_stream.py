@@ -3,20 +3,19 @@
 For the default detector (configs/detect3d_default.py: ResNet-18/2 at 160x720) and the paper
 detector (configs/detect3d_kitti.py: ResNet-101 at 288x1280), per runtime and precision that
 runs on this machine (jax f32/bf16, onnxruntime f32, openvino f32/bf16/int8), a KITTI-size
-(1242x375) MPEG-4 video of the vendored real KITTI frames (tests/data/kitti) goes through the stream pipeline of
-``python -m gac_jax.cli.predict --video`` (:class:`gac_jax.streams.pipeline.StreamPipeline`):
-decode, test transform, network, decoding + NMS + hill-climbing, drawing the 3D boxes and the
-bird's-eye view, MPEG-4 encoding of the annotated frame and the KITTI result file, with the
-five stages overlapping on threads. Weights are random (timing only; score threshold 0 and
-``top_k`` 100 as in bench_runtimes.py: 100 candidates per frame through NMS and
-hill-climbing, a crowded frame).
+(1242x375) MPEG-4 video of the vendored real KITTI frames (tests/data/kitti) goes through the
+stream pipeline of ``python -m gac_jax.cli.predict --video``
+(:class:`gac_jax.streams.pipeline.StreamPipeline`): decode, test transform, network,
+decoding + NMS + hill-climbing, drawing the 3D boxes and the bird's-eye view, MPEG-4
+encoding of the annotated frame and the KITTI result file, the five stages overlapping on
+threads. Weights are random (timing only; score threshold 0 and ``top_k`` 100 as in
+bench_runtimes.py: 100 candidates per frame through NMS and hill-climbing, a crowded frame).
 
 Reported per row: sustained frames/s (frames written / wall time from the first frame's read
 to the last frame's write; the median over ``--rounds``), per-frame latency (decode start
 to written; median and p95 over the frames of every round) and the milliseconds each stage
 works per frame (stages overlap: the slowest one sets the rate), plus the machine and its
-load.
-Export, int8 calibration and the first (compiling) frame are outside the timing.
+load. Export, int8 calibration and the first (compiling) frame are outside the timing.
 
     python benchmarks/bench_stream.py [--configs default,paper] [--frames 120]
         [--paper-frames 20] [--rounds 2] [--only 'jax f32,openvino int8'] [--batch-size 1]
