@@ -83,6 +83,8 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
         parser.error(f"{' and '.join(given)} are several inputs; give one")
     if args.input is None and not given:
         parser.error("give IMAGE_OR_DIR or one of --video, --camera, --sequence, --clip")
+    if args.out_video is not None and args.no_images:
+        parser.error("--out-video and --no-images: give one (--no-images writes no video)")
     if not given:
         stream_only = ["plane", "out_video", "jsonl", "realtime", "fps", "max_frames"]
         used = [
@@ -241,6 +243,13 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
             results = outputs.JsonlResults(out / "detections.jsonl")
         else:
             results = outputs.KittiResults(out / "data")
+            earlier = len(list(results.folder.glob("*.txt"))) if results.folder.is_dir() else 0
+            if earlier:
+                print(
+                    f"note: {results.folder} already holds {earlier} result files; this run "
+                    "overwrites those of its frames and leaves the others",
+                    flush=True,
+                )
         h, w = source.size
         fps = f"{source.fps:g} frames/s" if source.fps else "fps unknown"
         count = f", {source.expected_frames} frames" if source.expected_frames else ""

@@ -4,6 +4,7 @@
   suffix (:data:`CODECS`: ``.mp4``/``.m4v``/``.mov`` MPEG-4 part 2 ``mp4v``, ``.avi``/``.mkv``
   Motion JPEG). It is written to a hidden ``.<name>.partial<suffix>`` beside the target and
   renamed when released, so an earlier video of the same name stays whole until the new one is.
+  MPEG-4 frames of an odd size get a black row / column at the bottom / right.
 * :class:`KittiResults`: ``DIR/<frame id>.txt`` per frame (KITTI result lines with scores,
   written atomically), the files ``python -m gac_jax.cli.predict IMAGE_DIR`` writes.
 * :class:`JsonlResults`: one JSON object per frame and line, flushed per frame (``.partial``
@@ -55,19 +56,27 @@ class AnnotatedVideo:
         self.frames = 0
         self.size: tuple[int, int] | None = None
         self._writer: cv2.VideoWriter | None = None
+        self._pad = (0, 0)  # rows, columns added at the bottom / right
 
     def write(self, rgb: np.ndarray) -> None:
         h, w = rgb.shape[:2]
         if self._writer is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            codec = cv2.VideoWriter_fourcc(*CODECS[self.path.suffix.lower()])
-            self._writer = cv2.VideoWriter(os.fspath(self.partial), codec, self.fps, (w, h))
+            codec = CODECS[self.path.suffix.lower()]
+            # MPEG-4 wants even sizes (FFmpeg would cut the last row / column): pad instead
+            self._pad = (h % 2, w % 2) if codec == "mp4v" else (0, 0)
+            size = (w + self._pad[1], h + self._pad[0])
+            fourcc = cv2.VideoWriter_fourcc(*codec)
+            self._writer = cv2.VideoWriter(os.fspath(self.partial), fourcc, self.fps, size)
             if not self._writer.isOpened():
                 raise KittiFormatError(self.path, f"OpenCV cannot write this video ({w}x{h})")
             self.size = (h, w)
         if (h, w) != self.size:
             raise ValueError(f"picture of {w}x{h} in a video of {self.size[1]}x{self.size[0]}")
-        self._writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+        if self._pad != (0, 0):
+            bgr = cv2.copyMakeBorder(bgr, 0, self._pad[0], 0, self._pad[1], cv2.BORDER_CONSTANT)
+        self._writer.write(bgr)
         self.frames += 1
 
     def close(self) -> None:
