@@ -4,7 +4,8 @@
   suffix (:data:`CODECS`: ``.mp4``/``.m4v``/``.mov`` MPEG-4 part 2 ``mp4v``, ``.avi``/``.mkv``
   Motion JPEG). It is written to a hidden ``.<name>.partial<suffix>`` beside the target and
   renamed when released, so an earlier video of the same name stays whole until the new one is.
-  MPEG-4 frames of an odd size get a black row / column at the bottom / right.
+  Frames of an odd size get a black row / column at the bottom / right (FFmpeg's MPEG-4 and
+  Motion JPEG encoders would cut them).
 * :class:`KittiResults`: ``DIR/<frame id>.txt`` per frame (KITTI result lines with scores,
   written atomically), the files ``python -m gac_jax.cli.predict IMAGE_DIR`` writes.
 * :class:`JsonlResults`: one JSON object per frame and line, flushed per frame (``.partial``
@@ -63,8 +64,8 @@ class AnnotatedVideo:
         if self._writer is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             codec = CODECS[self.path.suffix.lower()]
-            # MPEG-4 wants even sizes (FFmpeg would cut the last row / column): pad instead
-            self._pad = (h % 2, w % 2) if codec == "mp4v" else (0, 0)
+            # the codecs want even sizes (FFmpeg would cut the last row / column): pad instead
+            self._pad = (h % 2, w % 2)
             size = (w + self._pad[1], h + self._pad[0])
             fourcc = cv2.VideoWriter_fourcc(*codec)
             self._writer = cv2.VideoWriter(os.fspath(self.partial), fourcc, self.fps, size)
