@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 from machine_info import describe_machine, one_line  # benchmarks/ is on sys.path
-from random_weights import random_variables
+from random_weights import random_variables, timing_detector_config
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -47,14 +47,6 @@ CONFIGS = {
     "paper": "configs/detect3d_kitti.py",
     "tiny": "configs/detect3d_default.py:tiny",  # a check of the script, not a result
 }
-COMBOS = (
-    ("jax", "f32"),
-    ("jax", "bf16"),
-    ("onnxruntime", "f32"),
-    ("openvino", "f32"),
-    ("openvino", "bf16"),
-    ("openvino", "int8"),
-)
 FRAME_SIZE = (375, 1242)  # KITTI's
 
 
@@ -81,23 +73,11 @@ def random_detector(name: str, tmp: Path):
     """A :class:`LoadedDetector` of config ``name`` with random weights (priors from the
     KITTI samples)."""
     from gac_jax.builders import detect3d as builders
-    from gac_jax.config import apply_overrides, load_config
     from gac_jax.detection.anchor_priors import make_detection_constants
     from gac_jax.detection.anchors import generate_anchors
     from gac_jax.trained.detector import LoadedDetector
 
-    config = load_config(str(REPO / CONFIGS[name]))
-    apply_overrides(
-        config,
-        [
-            "data.source=kitti",
-            f"data.root={KITTI}",
-            "data.train_split=labeled",
-            "anchors.prior_min_count=1",
-            "eval.score_threshold=0.0",
-            "eval.top_k=100",
-        ],
-    )
+    config = timing_detector_config(str(REPO / CONFIGS[name]), KITTI)
     layout = builders.anchor_layout(config)
     model = builders.build_model(config, layout.anchors_per_cell)
     variables = random_variables(model, config, builders.init_variables)
@@ -139,7 +119,7 @@ def main() -> None:
     import numpy as np
 
     from gac_jax.api.detector import Detector3D
-    from gac_jax.deploy.runtimes import check_runtime, cpu_flags
+    from gac_jax.deploy.runtimes import RUNTIME_PRECISIONS, check_runtime, cpu_flags
     from gac_jax.streams import sources
     from gac_jax.streams.pipeline import warm_up
     from gac_jax.streams.rates import percentile_ms
@@ -163,7 +143,7 @@ def main() -> None:
         f"CPU flags: AMX-BF16 {flags['amx_bf16']}, AMX-INT8 {flags['amx_int8']}, "
         f"AVX512_BF16 {flags['avx512_bf16']}"
     )
-    combos = [c for c in COMBOS if not args.only or " ".join(c) in args.only.split(",")]
+    combos = [c for c in RUNTIME_PRECISIONS if not args.only or " ".join(c) in args.only.split(",")]
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_stream_") as tmp:
         tmp = Path(tmp)

@@ -322,22 +322,20 @@ class StreamPipeline:
     def run(self) -> StreamReport:
         """Runs the stream to its end (or :meth:`stop` / :meth:`abort`); returns the report.
         The outputs are not closed here."""
+        stages = [
+            ("read", self._read, ()),
+            (
+                "prepare",
+                self._stage,
+                (PREPARE, self._read_q.get, self._prepared_q.put, self._prepare),
+            ),
+            ("network", self._network, ()),
+            ("finish", self._stage, (FINISH, self._raw_q.get, self._drawn_q.put, self._finish)),
+            ("write", self._write, ()),
+        ]
         threads = [
-            threading.Thread(target=self._read, name="gac-stream-read", daemon=True),
-            threading.Thread(
-                target=self._stage,
-                args=(PREPARE, self._read_q.get, self._prepared_q.put, self._prepare),
-                name="gac-stream-prepare",
-                daemon=True,
-            ),
-            threading.Thread(target=self._network, name="gac-stream-network", daemon=True),
-            threading.Thread(
-                target=self._stage,
-                args=(FINISH, self._raw_q.get, self._drawn_q.put, self._finish),
-                name="gac-stream-finish",
-                daemon=True,
-            ),
-            threading.Thread(target=self._write, name="gac-stream-write", daemon=True),
+            threading.Thread(target=fn, args=args, name=f"gac-stream-{name}", daemon=True)
+            for name, fn, args in stages
         ]
         for t in threads:
             t.start()
