@@ -140,11 +140,12 @@ def test_a_video_file_gives_the_image_predict_results(
     assert len(pictures) == 6 and pictures[0].shape[0] == SIZE[0]
     assert pictures[0].shape[1] > SIZE[1]  # camera view + bird's-eye view
 
-    code, _, err = run([*argv, "--out", tmp_path / "jsonl", "--jsonl", "--no-images"], capsys)
+    jsonl = ["--out", tmp_path / "jsonl", "--jsonl", "--no-images", "--max-frames", 4]
+    code, _, err = run([*argv, *jsonl], capsys)
     assert code == 0, err
     lines = (tmp_path / "jsonl" / "detections.jsonl").read_text().splitlines()
     records = [json.loads(line) for line in lines]
-    assert [r["frame"] for r in records] == [f"{i:06d}" for i in range(6)]
+    assert [r["frame"] for r in records] == [f"{i:06d}" for i in range(4)]
     for r in records:
         kitti = read_label(out / "data" / f"{r['frame']}.txt", with_score=True)
         scores = [o["score"] for o in r["objects"]]
@@ -173,6 +174,17 @@ def test_bad_inputs_give_one_line(tiny_detect3d_workdir, frames, calib, tmp_path
     one_error_line(code, err, "calib.txt", "does not fit the 400x200 frames", "outside")
     code, _, err = run(["--workdir", wd, "--sequence", tmp_path / "nothing"], capsys)
     one_error_line(code, err, "nothing", "not found")
+    # a video that ends early: its frames are processed and written, then one line, exit 2
+    full = write_video(tmp_path / "full.avi", [frames[i % len(frames)] for i in range(20)])
+    data = full.read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    out = tmp_path / "cut_out"
+    argv = ["--video", cut, "--calib", tmp_path / "calib.txt", "--out", out, "--no-images"]
+    code, stdout, err = run(["--workdir", wd, *argv], capsys)
+    line = one_error_line(code, err, "cut.avi", "video ends after", "of its 20 frames")
+    decoded = int(line.split("video ends after ")[1].split()[0])
+    assert 0 < decoded < 20 and len(list((out / "data").glob("*.txt"))) == decoded
     with pytest.raises(SystemExit):  # two inputs
         predict.main(["--workdir", str(wd), str(tmp_path), "--video", str(video)])
     with pytest.raises(SystemExit):  # the old P2/P3 option is --calib-camera now
