@@ -27,11 +27,10 @@ import numpy as np
 from gac_jax.api import runtime_args
 from gac_jax.api.inputs import (
     InputError,
-    check_positive_int,
     check_step,
     image_sample,
-    prepare_batch,
 )
+from gac_jax.api.stages import StagedModel, checked_prepared, padded_chunks
 from gac_jax.builders.depth import eval_transform
 from gac_jax.data.loader import collate
 from gac_jax.evaluation.depth_evaluator import NetworkPredictor
@@ -50,7 +49,7 @@ class PreparedDepthImage:
     arrays: dict[str, np.ndarray]
 
 
-class DepthPredictor:
+class DepthPredictor(StagedModel):
     """A trained depth network (:class:`~gac_jax.models.depth_unet.DepthUNet`); build it with
     :meth:`from_workdir`.
 
@@ -107,31 +106,17 @@ class DepthPredictor:
         """
         workdir = runtime_args.check_workdir(workdir)
         step = check_step(step)
-        runtime_args.check_runtime_choice(runtime, precision, None)
-        batch_size = check_positive_int(batch_size, "batch_size")
+        options = runtime_args.model_options(runtime, precision, None, batch_size, export_dir)
+        del options["threads"]  # the depth runtimes take every usable core
         try:
             config, model, variables, step = restore_depth_model(workdir, step)
         except ValueError as e:  # KittiFormatError: no config / prior / checkpoint (step)
             argument = "step" if step is not None and "no checkpoint" in str(e) else "workdir"
             raise InputError(argument, str(e)) from None
-        return cls(
-            config,
-            model,
-            variables,
-            step,
-            workdir,
-            runtime,
-            precision,
-            batch_size=batch_size,
-            export_dir=export_dir,
-        )
+        return cls(config, model, variables, step, workdir, **options)
 
     def __repr__(self) -> str:
-        h, w = self.input_size
-        return (
-            f"DepthPredictor(step {self.step}; input {h}x{w}; {self.runtime} {self.precision}, "
-            f"batch {self.batch_size})"
-        )
+        return f"DepthPredictor(step {self.step}; {self._describe()})"
 
     def prepare(self, image: np.ndarray, P2: Any, plane: Any = None) -> PreparedDepthImage:
         """Checks one image (arguments as :meth:`gac_jax.api.Detector3D.prepare`, any height)
@@ -151,17 +136,11 @@ class DepthPredictor:
         """The network on prepared images in chunks of ``batch_size`` (the last padded: one
         compiled shape), each map resampled to its original image grid: (H, W) float32 metres.
         Calls are serialised (a lock)."""
-        prepared = list(prepared)
-        if not prepared or not all(isinstance(p, PreparedDepthImage) for p in prepared):
-            raise InputError(
-                "prepared", "expected a non-empty list of DepthPredictor.prepare results"
-            )
+        prepared = checked_prepared(prepared, PreparedDepthImage, "DepthPredictor.prepare")
         out: list[np.ndarray] = []
         with self._lock:
-            for start in range(0, len(prepared), self.batch_size):
-                part = prepared[start : start + self.batch_size]
-                padded = part + [part[-1]] * (self.batch_size - len(part))
-                out.extend(self._predictor(collate([p.arrays for p in padded]))[: len(part)])
+            for part, n in padded_chunks(prepared, self.batch_size):
+                out.extend(self._predictor(collate([p.arrays for p in part]))[:n])
         return out
 
     def finish(
@@ -173,15 +152,3 @@ class DepthPredictor:
         if len(raw) != len(prepared):
             raise InputError("prepared", f"{len(prepared)} prepared images for {len(raw)} maps")
         return list(raw)
-
-    def predict(self, image: np.ndarray, P2: Any, plane: Any = None) -> np.ndarray:
-        """(H, W) float32 depth in metres of ``image`` (H, W, 3) uint8 RGB with projection
-        ``P2`` (3, 4) and ground ``plane`` (4,) or None (the config's level camera)."""
-        return self.infer([self.prepare(image, P2, plane)])[0]
-
-    def predict_batch(
-        self, images: Sequence[np.ndarray], P2s: Sequence[Any], planes: Sequence[Any] | None = None
-    ) -> list[np.ndarray]:
-        """:meth:`predict` of several images (any sizes), batched."""
-        prepared = prepare_batch(self.prepare, images, P2s, planes)
-        return self.infer(prepared) if prepared else []

@@ -38,12 +38,11 @@ from gac_jax.api import runtime_args
 from gac_jax.api.detections import Detections
 from gac_jax.api.inputs import (
     InputError,
-    check_positive_int,
     check_score_threshold,
     check_step,
     image_sample,
-    prepare_batch,
 )
+from gac_jax.api.stages import StagedModel, checked_prepared, padded_chunks
 from gac_jax.builders.detect3d import eval_transform, filter_options
 from gac_jax.config import ConfigError, apply_overrides
 from gac_jax.detection.inference import candidates_to_objects, make_predict_fn
@@ -73,7 +72,7 @@ class PreparedImage:
     cut_off: bool
 
 
-class Detector3D:
+class Detector3D(StagedModel):
     """A trained GAC detector; build it with :meth:`from_workdir` or :meth:`from_weights`.
 
     Attributes:
@@ -167,25 +166,22 @@ class Detector3D:
         workdir = runtime_args.check_workdir(workdir)
         step = check_step(step)
         score = check_score_threshold(score_threshold)
-        runtime_args.check_runtime_choice(runtime, precision, threads)
-        batch_size = check_positive_int(batch_size, "batch_size")
+        options = runtime_args.model_options(runtime, precision, threads, batch_size, export_dir)
         overrides = [] if score is None else [f"eval.score_threshold={score!r}"]
         with runtime_args.file_errors_as("workdir"):
             config = load_run_config(workdir, None, overrides)
+        if "anchors" not in config:
+            raise InputError(
+                "workdir",
+                f"{workdir / 'config.json'}: not a detector run (no anchors; a depth run's "
+                "workdir goes to DepthPredictor.from_workdir)",
+            )
         try:
             detector = load_detector(workdir, config, step=step, dtype=_dtype(runtime, precision))
         except ValueError as e:  # KittiFormatError: a missing step or an unfitting checkpoint
             argument = "step" if step is not None and "no checkpoint step" in str(e) else "workdir"
             raise InputError(argument, str(e)) from None
-        return cls(
-            detector,
-            workdir,
-            runtime,
-            precision,
-            threads=threads,
-            batch_size=batch_size,
-            export_dir=export_dir,
-        )
+        return cls(detector, workdir, **options)
 
     @classmethod
     def from_weights(
@@ -216,8 +212,7 @@ class Detector3D:
             workdir = weights.parent.parent if weights.parent.name == "checkpoints" else weights
         workdir = Path(workdir)
         score = check_score_threshold(score_threshold)
-        runtime_args.check_runtime_choice(runtime, precision, threads)
-        batch_size = check_positive_int(batch_size, "batch_size")
+        options = runtime_args.model_options(runtime, precision, threads, batch_size, export_dir)
         overrides = [] if score is None else [f"eval.score_threshold={score!r}"]
         if isinstance(config, ml_collections.ConfigDict):
             config = copy.deepcopy(config)
@@ -234,15 +229,7 @@ class Detector3D:
             detector = load_detector(
                 workdir, config, checkpoint=weights, dtype=_dtype(runtime, precision)
             )
-        return cls(
-            detector,
-            workdir,
-            runtime,
-            precision,
-            threads=threads,
-            batch_size=batch_size,
-            export_dir=export_dir,
-        )
+        return cls(detector, workdir, **options)
 
     # ------------------------------------------------------------------ description
 
@@ -263,11 +250,7 @@ class Detector3D:
         return self._detector.step
 
     def __repr__(self) -> str:
-        h, w = self.input_size
-        return (
-            f"Detector3D({self.weights}; {', '.join(self.class_names)}; input {h}x{w}; "
-            f"{self.runtime} {self.precision}, batch {self.batch_size})"
-        )
+        return f"Detector3D({self.weights}; {', '.join(self.class_names)}; {self._describe()})"
 
     # ------------------------------------------------------------------ stages
 
@@ -307,18 +290,13 @@ class Detector3D:
           ``{key: (N, K, ...) numpy}``: the candidates of
           :func:`gac_jax.detection.inference.make_predict_fn` for the N images, in order.
         """
-        prepared = list(prepared)
-        if not prepared or not all(isinstance(p, PreparedImage) for p in prepared):
-            raise InputError("prepared", "expected a non-empty list of Detector3D.prepare results")
+        prepared = checked_prepared(prepared, PreparedImage, "Detector3D.prepare")
         chunks = []
         with self._lock:
-            for start in range(0, len(prepared), self.batch_size):
-                part = prepared[start : start + self.batch_size]
-                n = len(part)
-                padded = part + [part[-1]] * (self.batch_size - n)
-                images = np.stack([p.image for p in padded])
-                P2 = np.stack([p.P2 for p in padded])
-                planes = np.stack([p.plane for p in padded])
+            for part, n in padded_chunks(prepared, self.batch_size):
+                images = np.stack([p.image for p in part])
+                P2 = np.stack([p.P2 for p in part])
+                planes = np.stack([p.plane for p in part])
                 out = self._predict(self._variables, images, P2, planes)
                 chunks.append({k: np.asarray(v)[:n] for k, v in out.items()})
         return {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
@@ -346,23 +324,6 @@ class Detector3D:
             )
             out.append(Detections.from_kitti_objects(objects))
         return out
-
-    # ------------------------------------------------------------------ one call
-
-    def predict(self, image: np.ndarray, P2: Any, plane: Any = None) -> Detections:
-        """The detections of one image (arguments as :meth:`prepare`)."""
-        prepared = [self.prepare(image, P2, plane)]
-        return self.finish(self.infer(prepared), prepared)[0]
-
-    def predict_batch(
-        self, images: Sequence[np.ndarray], P2s: Sequence[Any], planes: Sequence[Any] | None = None
-    ) -> list[Detections]:
-        """The detections of several images (any sizes), one :class:`Detections` per image;
-        the same as :meth:`predict` image by image."""
-        prepared = prepare_batch(self.prepare, images, P2s, planes)
-        if not prepared:
-            return []
-        return self.finish(self.infer(prepared), prepared)
 
 
 def _dtype(runtime: str, precision: str):

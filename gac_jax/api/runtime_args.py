@@ -5,6 +5,7 @@ precision, threads, batch size, and the translation of the loaders' file errors 
 from __future__ import annotations
 
 import contextlib
+import os
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -46,6 +47,25 @@ def check_runtime_choice(runtime: str, precision: str, threads: int | None) -> N
         raise InputError("precision" if precision != "f32" else "runtime", str(e)) from None
     if note:
         warnings.warn(note.removeprefix("note: "), UserWarning, stacklevel=3)
+
+
+def model_options(
+    runtime: str,
+    precision: str,
+    threads: int | None,
+    batch_size: int,
+    export_dir: str | os.PathLike | None,
+) -> dict:
+    """The checked keyword arguments every API model's constructor takes
+    (:func:`check_runtime_choice`; ``batch_size`` >= 1)."""
+    check_runtime_choice(runtime, precision, threads)
+    return {
+        "runtime": runtime,
+        "precision": precision,
+        "threads": threads,
+        "batch_size": check_positive_int(batch_size, "batch_size"),
+        "export_dir": export_dir,
+    }
 
 
 def check_workdir(workdir, name: str = "workdir") -> Path:
