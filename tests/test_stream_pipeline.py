@@ -5,6 +5,7 @@ counts, pacing and stopping; tests/test_stream_cli.py runs the real detector).""
 from __future__ import annotations
 
 import json
+import queue
 import threading
 import time
 
@@ -168,6 +169,8 @@ def test_abort_drops_the_frames_in_flight_and_a_failure_is_reported(tmp_path):
 
 def test_latest_slot():
     slot = LatestSlot()
+    with pytest.raises(queue.Empty):
+        slot.get_nowait()
     slot.put((["a"], 1))
     slot.put((["b"], 2))
     assert slot.get() == (["b"], 2) and slot.dropped == 1

@@ -6,8 +6,9 @@ overlap on five threads joined by bounded queues.
 
 Every stage is one thread taking items in order, so frames leave in the order they came. A
 file is processed whole; with ``realtime`` (a live camera, or a recording paced as one) the
-reader never waits: a one-place :class:`LatestSlot` keeps only the newest frame when the
-detector falls behind, and the frames it replaced are counted as dropped.
+reader never waits: one-place :class:`LatestSlot` queues before and after the host transform
+keep only the newest frame when the detector falls behind (the network always takes the
+newest frame there is), and the frames they replaced are counted as dropped.
 
 :meth:`StreamPipeline.stop` (first Ctrl-C) stops reading and lets the frames in flight
 finish; :meth:`StreamPipeline.abort` (second Ctrl-C, or a failing stage) drops them. Either
@@ -59,14 +60,20 @@ class LatestSlot:
                 self._item, self._full = item, True
             self._cond.notify()
 
-    def get(self):
+    def get(self, block: bool = True):
+        """The waiting item (``block``: waits for one; else ``queue.Empty`` when none)."""
         with self._cond:
-            while not (self._full or self._ended):
+            while block and not (self._full or self._ended):
                 self._cond.wait()
             if not self._full:
-                return END
+                if self._ended:
+                    return END
+                raise queue.Empty
             item, self._item, self._full = self._item, None, False
             return item
+
+    def get_nowait(self):
+        return self.get(block=False)
 
 
 @dataclasses.dataclass
@@ -129,7 +136,8 @@ class StreamPipeline:
         self.report_every, self.log, self.draw = report_every, log, draw
         self.rates = StreamRates()
         self._read_q = LatestSlot() if realtime else queue.Queue(queue_size)
-        self._prepared_q = queue.Queue(1 if realtime else max(queue_size, batch_size))
+        # live: the network takes the newest prepared frame too (an older one is dropped)
+        self._prepared_q = LatestSlot() if realtime else queue.Queue(max(queue_size, batch_size))
         self._raw_q = queue.Queue(2)
         self._drawn_q = queue.Queue(queue_size)
         self._stop = threading.Event()
@@ -162,6 +170,13 @@ class StreamPipeline:
 
     def _dropping(self, rank: int) -> bool:
         return rank <= self._drop_up_to
+
+    @property
+    def dropped_live(self) -> int:
+        """Frames of a live source replaced by newer ones before the network took them."""
+        if not self.realtime:
+            return 0
+        return self._read_q.dropped + self._prepared_q.dropped
 
     @property
     def stopping(self) -> bool:
@@ -316,7 +331,7 @@ class StreamPipeline:
             f"{self.written} frames written: {format_rates(window)} (last {self.report_every:g} s)"
         )
         if self.realtime:
-            line += f", {self._read_q.dropped} dropped"
+            line += f", {self.dropped_live} dropped"
         return line
 
     def run(self) -> StreamReport:
@@ -348,7 +363,7 @@ class StreamPipeline:
         for t in threads:
             t.join()
         interrupted = self._stop.is_set()
-        dropped_live = self._read_q.dropped if self.realtime else 0
+        dropped_live = self.dropped_live
         finished = 0 if self.written_at_stop is None else self.written - self.written_at_stop
         return StreamReport(
             delivered=self.delivered,
