@@ -14,8 +14,10 @@ bench_runtimes.py: 100 candidates per frame through NMS and hill-climbing, a cro
 Reported per row: sustained frames/s (frames written / wall time from the first frame's read
 to the last frame's write; the median over ``--rounds``), per-frame latency (decode start
 to written; median and p95 over the frames of every round) and the milliseconds each stage
-works per frame (stages overlap: the slowest one sets the rate), plus the machine and its
-load. Export, int8 calibration and the first (compiling) frame are outside the timing.
+works per frame (stages overlap: the slowest one sets the rate) and the process CPU time per
+frame (all threads: what the stream costs the machine, less sensitive to other load than the
+wall-clock figures), plus the machine and its load. Export, int8 calibration and the first
+(compiling) frame are outside the timing.
 
     python benchmarks/bench_stream.py [--configs default,paper] [--frames 120]
         [--paper-frames 20] [--rounds 2] [--only 'jax f32,openvino int8'] [--batch-size 1]
@@ -99,11 +101,13 @@ def run_stream(detector, video: Path, calib: Path, out: Path, batch_size: int) -
     pipeline = StreamPipeline(
         source, detector, annotated, results, batch_size=batch_size, report_every=0
     )
+    cpu0 = time.process_time()
     try:
         report = pipeline.run()
     finally:
         annotated.close()
         source.close()
+    cpu_s = time.process_time() - cpu0
     if report.error is not None:
         raise report.error
     latencies = pipeline.rates.latencies().tolist()
@@ -112,6 +116,7 @@ def run_stream(detector, video: Path, calib: Path, out: Path, batch_size: int) -
         "latencies": latencies,
         "frames": report.written,
         "stage_ms": report.stage_ms,
+        "cpu_ms_per_frame": 1e3 * cpu_s / max(report.written, 1),
     }
 
 
@@ -182,7 +187,7 @@ def main() -> None:
                 warm_up(detector, source.read())
                 source.close()
                 setup = time.perf_counter() - t0
-                fps, latencies, stages = [], [], []
+                fps, latencies, stages, cpu = [], [], [], []
                 for r in range(args.rounds):
                     out = tmp / f"out_{name}_{runtime}_{precision}_{r}"
                     result = run_stream(detector, video, calib, out, args.batch_size)
@@ -190,6 +195,7 @@ def main() -> None:
                     fps.append(result["fps"])
                     latencies += result["latencies"]
                     stages.append(result["stage_ms"])
+                    cpu.append(result["cpu_ms_per_frame"])
                 row = {
                     "config": name,
                     "runtime": runtime,
@@ -201,6 +207,7 @@ def main() -> None:
                     "latency_median_ms": percentile_ms(latencies, 50),
                     "latency_p95_ms": percentile_ms(latencies, 95),
                     "stage_ms": {k: float(np.median([st[k] for st in stages])) for k in stages[0]},
+                    "cpu_ms_per_frame": float(np.median(cpu)),
                     "setup_s": setup,
                     "load_avg_1min": round(os.getloadavg()[0], 2),
                 }
@@ -214,6 +221,10 @@ def main() -> None:
                 )
                 busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_ms"].items())
                 print(f"    ms per frame, each stage (overlapping): {busy}", flush=True)
+                print(
+                    f"    process CPU {row['cpu_ms_per_frame']:.0f} ms per frame (all threads)",
+                    flush=True,
+                )
             best = max((r for r in rows if r["config"] == name), key=lambda r: r["fps_median"])
             print(
                 f"  fastest: {best['runtime']} {best['precision']} {best['fps_median']:.1f} "
