@@ -116,6 +116,7 @@ def run_stream(detector, video: Path, calib: Path, out: Path, batch_size: int) -
         "latencies": latencies,
         "frames": report.written,
         "stage_ms": report.stage_ms,
+        "stage_cpu_ms": pipeline.stage_ms(cpu=True),
         "cpu_ms_per_frame": 1e3 * cpu_s / max(report.written, 1),
     }
 
@@ -187,7 +188,7 @@ def main() -> None:
                 warm_up(detector, source.read())
                 source.close()
                 setup = time.perf_counter() - t0
-                fps, latencies, stages, cpu = [], [], [], []
+                fps, latencies, stages, stage_cpu, cpu = [], [], [], [], []
                 for r in range(args.rounds):
                     out = tmp / f"out_{name}_{runtime}_{precision}_{r}"
                     result = run_stream(detector, video, calib, out, args.batch_size)
@@ -195,6 +196,7 @@ def main() -> None:
                     fps.append(result["fps"])
                     latencies += result["latencies"]
                     stages.append(result["stage_ms"])
+                    stage_cpu.append(result["stage_cpu_ms"])
                     cpu.append(result["cpu_ms_per_frame"])
                 row = {
                     "config": name,
@@ -207,6 +209,9 @@ def main() -> None:
                     "latency_median_ms": percentile_ms(latencies, 50),
                     "latency_p95_ms": percentile_ms(latencies, 95),
                     "stage_ms": {k: float(np.median([st[k] for st in stages])) for k in stages[0]},
+                    "stage_cpu_ms": {
+                        k: float(np.median([st[k] for st in stage_cpu])) for k in stage_cpu[0]
+                    },
                     "cpu_ms_per_frame": float(np.median(cpu)),
                     "setup_s": setup,
                     "load_avg_1min": round(os.getloadavg()[0], 2),
@@ -221,6 +226,8 @@ def main() -> None:
                 )
                 busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_ms"].items())
                 print(f"    ms per frame, each stage (overlapping): {busy}", flush=True)
+                busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_cpu_ms"].items())
+                print(f"    CPU ms per frame of each stage's thread: {busy}", flush=True)
                 print(
                     f"    process CPU {row['cpu_ms_per_frame']:.0f} ms per frame (all threads)",
                     flush=True,

@@ -149,7 +149,8 @@ class StreamPipeline:
         self.written_at_stop: int | None = None
         self._source_ended = False
         self.errors: list[BaseException] = []
-        self.busy_s = [0.0] * len(STAGE_NAMES)
+        self.busy_s = [0.0] * len(STAGE_NAMES)  # wall seconds each stage worked
+        self.cpu_s = [0.0] * len(STAGE_NAMES)  # CPU seconds of each stage's own thread
 
     # ------------------------------------------------------------------ control
 
@@ -188,16 +189,22 @@ class StreamPipeline:
             self.errors.append(error)
         self._drop_from(rank)
 
-    def _busy(self, stage: int, t0: float) -> None:
-        self.busy_s[stage] += time.perf_counter() - t0  # one thread per stage: no lock
+    def _busy(self, stage: int, t0: tuple[float, float]) -> None:
+        """Adds the wall and thread CPU seconds since ``t0`` to ``stage`` (one thread per
+        stage: no lock)."""
+        self.busy_s[stage] += time.perf_counter() - t0[0]
+        self.cpu_s[stage] += time.thread_time() - t0[1]
 
-    def stage_ms(self) -> dict[str, float]:
+    def stage_ms(self, cpu: bool = False) -> dict[str, float]:
         """Milliseconds each stage worked per frame (waits excluded; ``read`` includes a
-        paced source's waiting for the next frame): the slowest one sets the rate."""
+        paced source's waiting for the next frame): the slowest one sets the rate. ``cpu``:
+        CPU time of the stage's thread instead (the network's excludes a runtime's own
+        worker threads)."""
         read = max(self.delivered, 1)
         done = max(self.written, 1)
+        seconds = self.cpu_s if cpu else self.busy_s
         return {
-            name: 1e3 * self.busy_s[i] / (read if i <= PREPARE else done)
+            name: 1e3 * seconds[i] / (read if i <= PREPARE else done)
             for i, name in enumerate(STAGE_NAMES)
         }
 
@@ -210,7 +217,7 @@ class StreamPipeline:
     def _read(self) -> None:
         try:
             while not self._stop.is_set():
-                t0 = time.perf_counter()
+                t0 = (time.perf_counter(), time.thread_time())
                 frame = self.source.read()
                 self._busy(READ, t0)
                 if frame is None:
@@ -233,7 +240,7 @@ class StreamPipeline:
                     self._drop(item[0])
                     continue
                 try:
-                    t0 = time.perf_counter()
+                    t0 = (time.perf_counter(), time.thread_time())
                     result = work(item)
                     self._busy(rank, t0)
                     put(result)
@@ -274,7 +281,7 @@ class StreamPipeline:
                     continue
                 prepared = [p for _, p in batch]
                 try:
-                    t0 = time.perf_counter()
+                    t0 = (time.perf_counter(), time.thread_time())
                     raw = self.detector.infer(prepared)
                     self._busy(NETWORK, t0)
                 except Exception as e:
@@ -306,7 +313,7 @@ class StreamPipeline:
                 self._drop(frames)
                 continue
             for k, (frame, (det, objects, picture)) in enumerate(zip(frames, drawn, strict=True)):
-                t0 = time.perf_counter()
+                t0 = (time.perf_counter(), time.thread_time())
                 try:
                     if self.video is not None:
                         self.video.write(picture)
