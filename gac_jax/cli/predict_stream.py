@@ -93,8 +93,10 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
         if used:
             parser.error(f"{used[0]} applies to --video/--camera/--sequence/--clip only")
         return
-    if args.checkpoint is not None:
-        parser.error("--checkpoint: streams run a workdir's checkpoint (--step N)")
+    if args.config is not None and args.checkpoint is None:
+        parser.error(
+            "--config: a stream runs the workdir's own config (or --checkpoint + --config)"
+        )
     if args.fps is not None and not args.fps > 0:
         parser.error("--fps must be > 0")
     if args.max_frames is not None and args.max_frames < 1:
@@ -161,18 +163,23 @@ def output_folder(args: argparse.Namespace, source) -> Path:
 
 
 def load_detector(args: argparse.Namespace):
+    """The :class:`~gac_jax.api.Detector3D` of the workdir's checkpoint (``--step``), or of
+    converted weights (``--checkpoint``, with ``--config`` or the workdir's config)."""
     from gac_jax.api import Detector3D
+    from gac_jax.trained.run_config import load_run_config
 
-    return Detector3D.from_workdir(
-        args.workdir,
-        step=args.step,
-        runtime=args.runtime,
-        precision=args.precision,
-        threads=args.threads if args.runtime != "jax" else None,
-        score_threshold=args.score_threshold,
-        batch_size=args.batch_size,
-        export_dir=args.export,
-    )
+    model = {
+        "runtime": args.runtime,
+        "precision": args.precision,
+        "threads": args.threads if args.runtime != "jax" else None,
+        "score_threshold": args.score_threshold,
+        "batch_size": args.batch_size,
+        "export_dir": args.export,
+    }
+    if args.checkpoint is not None:
+        config = args.config or load_run_config(args.workdir)
+        return Detector3D.from_weights(args.checkpoint, config, workdir=args.workdir, **model)
+    return Detector3D.from_workdir(args.workdir, step=args.step, **model)
 
 
 class _CtrlC:
