@@ -300,6 +300,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as e:
         print(f"error: {error_line(e, args.out or args.workdir)}", file=sys.stderr)
         return exit_code(e)
+    except KeyboardInterrupt:  # before a stream's frames (they handle Ctrl-C themselves)
+        print("interrupted", file=sys.stderr)
+        return 130
     return 0
 
 
