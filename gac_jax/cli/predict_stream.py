@@ -243,6 +243,17 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
     try:
         detector = load_detector(args)
         out = output_folder(args, source)
+        h, w = source.size
+        fps = f"{source.fps:g} frames/s" if source.fps else "fps unknown"
+        count = f", {source.expected_frames} frames" if source.expected_frames else ""
+        print(f"{detector.weights}: {source.name} ({w}x{h}, {fps}{count}) -> {out}", flush=True)
+        first = source.read()
+        if first is None:
+            raise KittiFormatError(source.name, "no frame")
+        print(f"warm-up (compile) on the first frame: {warm_up(detector, first):.1f} s", flush=True)
+        source = _Rewound(source, first, args.max_frames)
+        if args.realtime and not source.live:  # a recording replayed as a live camera
+            source = sources.PacedSource(source, source.fps or DEFAULT_FPS)
         video = None
         if not args.no_images:
             video = outputs.AnnotatedVideo(args.out_video or out / "annotated.mp4", source.fps)
@@ -257,17 +268,6 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
                     "overwrites those of its frames and leaves the others",
                     flush=True,
                 )
-        h, w = source.size
-        fps = f"{source.fps:g} frames/s" if source.fps else "fps unknown"
-        count = f", {source.expected_frames} frames" if source.expected_frames else ""
-        print(f"{detector.weights}: {source.name} ({w}x{h}, {fps}{count}) -> {out}", flush=True)
-        first = source.read()
-        if first is None:
-            raise KittiFormatError(source.name, "no frame")
-        print(f"warm-up (compile) on the first frame: {warm_up(detector, first):.1f} s", flush=True)
-        source = _Rewound(source, first, args.max_frames)
-        if args.realtime and not source.live:  # a recording replayed as a live camera
-            source = sources.PacedSource(source, source.fps or DEFAULT_FPS)
         pipeline = StreamPipeline(
             source,
             detector,
