@@ -21,7 +21,11 @@ wall-clock figures), plus the machine and its load. Export, int8 calibration and
 
     python benchmarks/bench_stream.py [--configs default,paper] [--frames 120]
         [--paper-frames 20] [--rounds 2] [--only 'jax f32,openvino int8'] [--batch-size 1]
-        [--threads N] [--json OUT]
+        [--threads N] [--workdir W] [--json OUT]
+
+``--workdir W`` adds rows of a trained detector (W's checkpoint and config: its score
+threshold, so the post-processing sees what that detector keeps; copy a run folder first,
+the runtimes export into it).
 """
 
 from __future__ import annotations
@@ -121,14 +125,70 @@ def run_stream(detector, video: Path, calib: Path, out: Path, batch_size: int) -
     }
 
 
-def main() -> None:
+def with_dtype(loaded, runtime: str, precision: str):
+    """``loaded`` with the compute dtype of ``runtime``/``precision`` (jax bf16: bfloat16)."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    if (runtime, precision) != ("jax", "bf16"):
+        return loaded
+    return dataclasses.replace(loaded, model=loaded.model.clone(dtype=jnp.bfloat16))
+
+
+def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
+    """``args.rounds`` passes of the stream over ``video``: medians of frames/s, stage times
+    and CPU per frame; latency median and p95 over every round's frames."""
     import numpy as np
+
+    from gac_jax.streams.rates import percentile_ms
+
+    t0 = time.perf_counter()
+    results = [
+        run_stream(detector, video, calib, out / str(r), args.batch_size)
+        for r in range(args.rounds)
+    ]
+    latencies = [x for r in results for x in r["latencies"]]
+
+    def median_of(key):
+        return {k: float(np.median([r[key][k] for r in results])) for k in results[0][key]}
+
+    return {
+        "rounds": args.rounds,
+        "fps_median": float(np.median([r["fps"] for r in results])),
+        "fps_rounds": [r["fps"] for r in results],
+        "latency_median_ms": percentile_ms(latencies, 50),
+        "latency_p95_ms": percentile_ms(latencies, 95),
+        "stage_ms": median_of("stage_ms"),
+        "stage_cpu_ms": median_of("stage_cpu_ms"),
+        "cpu_ms_per_frame": float(np.median([r["cpu_ms_per_frame"] for r in results])),
+        "frames_written": [r["frames"] for r in results],
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def print_row(label: str, row: dict) -> None:
+    rounds = ", ".join(f"{f:.2f}" for f in row["fps_rounds"])
+    print(
+        f"  {label:17s} {row['fps_median']:6.2f} frames/s  latency median "
+        f"{row['latency_median_ms']:7.0f} ms  p95 {row['latency_p95_ms']:7.0f} ms  "
+        f"(rounds {rounds}; set-up {row['setup_s']:.0f} s; load {row['load_avg_1min']})",
+        flush=True,
+    )
+    busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_ms"].items())
+    print(f"    ms per frame, each stage (overlapping): {busy}")
+    busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_cpu_ms"].items())
+    print(f"    CPU ms per frame of each stage's thread: {busy}")
+    print(f"    process CPU {row['cpu_ms_per_frame']:.0f} ms per frame (all threads)", flush=True)
+
+
+def main() -> None:
 
     from gac_jax.api.detector import Detector3D
     from gac_jax.deploy.runtimes import RUNTIME_PRECISIONS, check_runtime, cpu_flags
     from gac_jax.streams import sources
     from gac_jax.streams.pipeline import warm_up
-    from gac_jax.streams.rates import percentile_ms
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--configs", default="default,paper")
@@ -138,6 +198,9 @@ def main() -> None:
     p.add_argument("--only", help="rows to run, e.g. 'jax f32,openvino int8' (default: all)")
     p.add_argument("--batch-size", type=int, default=1)
     p.add_argument("--threads", type=int, help="ONNX Runtime / OpenVINO threads")
+    p.add_argument(
+        "--workdir", help="also a trained detector's run folder (its weights and config)"
+    )
     p.add_argument("--json", type=Path)
     args = p.parse_args()
 
@@ -150,14 +213,18 @@ def main() -> None:
         f"AVX512_BF16 {flags['avx512_bf16']}"
     )
     combos = [c for c in RUNTIME_PRECISIONS if not args.only or " ".join(c) in args.only.split(",")]
+    names = [n for n in args.configs.split(",") if n]
+    if args.workdir is not None:
+        names.append("trained")
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_stream_") as tmp:
         tmp = Path(tmp)
-        for name in args.configs.split(","):
+        for name in names:
             n = args.paper_frames if name == "paper" else args.frames
             video, calib = make_video(tmp / f"input_{n}.mp4", n)
-            print(f"\n=== {name} detector ({CONFIGS[name]}), {n}-frame 1242x375 MPEG-4 video ===")
-            loaded = random_detector(name, tmp)
+            what = f"{args.workdir}, its config" if name == "trained" else CONFIGS[name]
+            print(f"\n=== {name} detector ({what}), {n}-frame 1242x375 MPEG-4 video ===")
+            loaded = random_detector(name, tmp) if name != "trained" else None
             for runtime, precision in combos:
                 label = f"{runtime} {precision}"
                 try:
@@ -166,72 +233,26 @@ def main() -> None:
                     print(f"  skip {label}: {e}", flush=True)
                     continue
                 t0 = time.perf_counter()
-                if runtime == "jax" and precision == "bf16":
-                    import dataclasses
-
-                    import jax.numpy as jnp
-
-                    loaded_here = dataclasses.replace(
-                        loaded, model=loaded.model.clone(dtype=jnp.bfloat16)
-                    )
+                model = {
+                    "runtime": runtime,
+                    "precision": precision,
+                    "threads": args.threads if runtime != "jax" else None,
+                    "batch_size": args.batch_size,
+                }
+                if loaded is None:
+                    detector = Detector3D.from_workdir(args.workdir, **model)
                 else:
-                    loaded_here = loaded
-                detector = Detector3D(
-                    loaded_here,
-                    tmp / f"workdir_{name}",
-                    runtime,
-                    precision,
-                    threads=args.threads if runtime != "jax" else None,
-                    batch_size=args.batch_size,
-                )
+                    detector = Detector3D(
+                        with_dtype(loaded, runtime, precision), tmp / f"workdir_{name}", **model
+                    )
                 source = sources.VideoSource(video, sources.load_projection(calib), str(calib))
                 warm_up(detector, source.read())
                 source.close()
-                setup = time.perf_counter() - t0
-                fps, latencies, stages, stage_cpu, cpu = [], [], [], [], []
-                for r in range(args.rounds):
-                    out = tmp / f"out_{name}_{runtime}_{precision}_{r}"
-                    result = run_stream(detector, video, calib, out, args.batch_size)
-                    assert result["frames"] == n, result["frames"]
-                    fps.append(result["fps"])
-                    latencies += result["latencies"]
-                    stages.append(result["stage_ms"])
-                    stage_cpu.append(result["stage_cpu_ms"])
-                    cpu.append(result["cpu_ms_per_frame"])
-                row = {
-                    "config": name,
-                    "runtime": runtime,
-                    "precision": precision,
-                    "frames": n,
-                    "rounds": args.rounds,
-                    "fps_median": float(np.median(fps)),
-                    "fps_rounds": fps,
-                    "latency_median_ms": percentile_ms(latencies, 50),
-                    "latency_p95_ms": percentile_ms(latencies, 95),
-                    "stage_ms": {k: float(np.median([st[k] for st in stages])) for k in stages[0]},
-                    "stage_cpu_ms": {
-                        k: float(np.median([st[k] for st in stage_cpu])) for k in stage_cpu[0]
-                    },
-                    "cpu_ms_per_frame": float(np.median(cpu)),
-                    "setup_s": setup,
-                    "load_avg_1min": round(os.getloadavg()[0], 2),
-                }
+                row = {"config": name, "runtime": runtime, "precision": precision, "frames": n}
+                row.update(measure(detector, video, calib, tmp / f"out_{name}_{label}", args))
+                row["setup_s"] = time.perf_counter() - t0 - row.pop("wall_s")
                 rows.append(row)
-                print(
-                    f"  {label:17s} {row['fps_median']:6.2f} frames/s  latency median "
-                    f"{row['latency_median_ms']:7.0f} ms  p95 {row['latency_p95_ms']:7.0f} ms  "
-                    f"(rounds {', '.join(f'{f:.2f}' for f in fps)}; set-up {setup:.0f} s; "
-                    f"load {row['load_avg_1min']})",
-                    flush=True,
-                )
-                busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_ms"].items())
-                print(f"    ms per frame, each stage (overlapping): {busy}", flush=True)
-                busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_cpu_ms"].items())
-                print(f"    CPU ms per frame of each stage's thread: {busy}", flush=True)
-                print(
-                    f"    process CPU {row['cpu_ms_per_frame']:.0f} ms per frame (all threads)",
-                    flush=True,
-                )
+                print_row(label, row)
             best = max((r for r in rows if r["config"] == name), key=lambda r: r["fps_median"])
             print(
                 f"  fastest: {best['runtime']} {best['precision']} {best['fps_median']:.1f} "
