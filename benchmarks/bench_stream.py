@@ -21,11 +21,12 @@ wall-clock figures), plus the machine and its load. Export, int8 calibration and
 
     python benchmarks/bench_stream.py [--configs default,paper] [--frames 120]
         [--paper-frames 20] [--rounds 2] [--only 'jax f32,openvino int8'] [--batch-size 1]
-        [--threads N] [--workdir W] [--json OUT]
+        [--threads N] [--workdir W] [--live FPS] [--json OUT]
 
 ``--workdir W`` adds rows of a trained detector (W's checkpoint and config: its score
 threshold, so the post-processing sees what that detector keeps; copy a run folder first,
-the runtimes export into it).
+the runtimes export into it). ``--live FPS`` adds one pass per row paced as a camera at FPS
+(``--realtime``: the newest frame kept): the frames dropped and the latency of a live stream.
 """
 
 from __future__ import annotations
@@ -94,16 +95,27 @@ def random_detector(name: str, tmp: Path):
     return LoadedDetector(config, model, constants, variables, "random weights", f"random_{name}")
 
 
-def run_stream(detector, video: Path, calib: Path, out: Path, batch_size: int) -> dict:
-    """One pass of the stream pipeline over ``video``; returns its rates and latencies."""
+def run_stream(
+    detector, video: Path, calib: Path, out: Path, batch_size: int, live_fps: float | None = None
+) -> dict:
+    """One pass of the stream pipeline over ``video`` (``live_fps``: paced as a camera at that
+    rate, newest frame kept, as ``--realtime``); returns its rates and latencies."""
     from gac_jax.streams import outputs, sources
     from gac_jax.streams.pipeline import StreamPipeline
 
     source = sources.VideoSource(video, sources.load_projection(calib), str(calib))
     annotated = outputs.AnnotatedVideo(out / "annotated.mp4", source.fps)
     results = outputs.KittiResults(out / "data")
+    if live_fps:
+        source = sources.PacedSource(source, live_fps)
     pipeline = StreamPipeline(
-        source, detector, annotated, results, batch_size=batch_size, report_every=0
+        source,
+        detector,
+        annotated,
+        results,
+        batch_size=1 if live_fps else batch_size,
+        realtime=bool(live_fps),
+        report_every=0,
     )
     cpu0 = time.process_time()
     try:
@@ -119,6 +131,8 @@ def run_stream(detector, video: Path, calib: Path, out: Path, batch_size: int) -
         "fps": report.rates["fps"],
         "latencies": latencies,
         "frames": report.written,
+        "delivered": report.delivered,
+        "dropped": report.dropped_live,
         "stage_ms": report.stage_ms,
         "stage_cpu_ms": pipeline.stage_ms(cpu=True),
         "cpu_ms_per_frame": 1e3 * cpu_s / max(report.written, 1),
@@ -153,7 +167,7 @@ def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
     def median_of(key):
         return {k: float(np.median([r[key][k] for r in results])) for k in results[0][key]}
 
-    return {
+    row = {
         "rounds": args.rounds,
         "fps_median": float(np.median([r["fps"] for r in results])),
         "fps_rounds": [r["fps"] for r in results],
@@ -164,8 +178,18 @@ def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
         "cpu_ms_per_frame": float(np.median([r["cpu_ms_per_frame"] for r in results])),
         "frames_written": [r["frames"] for r in results],
         "load_avg_1min": round(os.getloadavg()[0], 2),
-        "wall_s": time.perf_counter() - t0,
     }
+    if args.live:  # one pass paced as a camera: what a live stream keeps and its latency
+        live = run_stream(detector, video, calib, out / "live", 1, args.live)
+        row["live"] = {
+            "fps": args.live,
+            "delivered": live["delivered"],
+            "dropped": live["dropped"],
+            "latency_median_ms": percentile_ms(live["latencies"], 50),
+            "latency_p95_ms": percentile_ms(live["latencies"], 95),
+        }
+    row["wall_s"] = time.perf_counter() - t0
+    return row
 
 
 def print_row(label: str, row: dict) -> None:
@@ -181,6 +205,14 @@ def print_row(label: str, row: dict) -> None:
     busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_cpu_ms"].items())
     print(f"    CPU ms per frame of each stage's thread: {busy}")
     print(f"    process CPU {row['cpu_ms_per_frame']:.0f} ms per frame (all threads)", flush=True)
+    if "live" in row:
+        live = row["live"]
+        print(
+            f"    live at {live['fps']:g} frames/s (--realtime): {live['dropped']} of "
+            f"{live['delivered']} frames dropped, latency median {live['latency_median_ms']:.0f} "
+            f"ms, p95 {live['latency_p95_ms']:.0f} ms",
+            flush=True,
+        )
 
 
 def main() -> None:
@@ -200,6 +232,9 @@ def main() -> None:
     p.add_argument("--threads", type=int, help="ONNX Runtime / OpenVINO threads")
     p.add_argument(
         "--workdir", help="also a trained detector's run folder (its weights and config)"
+    )
+    p.add_argument(
+        "--live", type=float, metavar="FPS", help="also one pass paced as a camera at FPS"
     )
     p.add_argument("--json", type=Path)
     args = p.parse_args()
