@@ -75,6 +75,7 @@ class DepthPredictor(StagedModel):
         self.config, self.step = config, step
         self.runtime, self.precision, self.batch_size = runtime, precision, batch_size
         self.input_size = (int(config.data.height), int(config.data.eval_width))
+        self.min_image_rows = 1  # shorter images than the crop are padded on top
         self._transform = eval_transform(config)
         self._lock = threading.Lock()
         with runtime_args.file_errors_as("workdir"):

@@ -79,8 +79,9 @@ class Detector3D(StagedModel):
       config: the run config; class_names: the model's classes (label order);
       input_size: (h, w) of the network input; runtime, precision: what runs the network;
       batch_size: images per network call; weights: where the weights came from; step: the
-      checkpoint step (None for converted weights); compile_s: seconds spent loading /
-      exporting / warming up an exported runtime (0 for jax, which compiles on first use).
+      checkpoint step (None for converted weights); load_s: seconds of setting up the
+      runtime (exported runtimes: export on first use, load, warm-up; jax: the weights' transfer
+      to the device; its jit compiles on the first call, or in :meth:`warmup`).
     """
 
     def __init__(
@@ -100,6 +101,7 @@ class Detector3D(StagedModel):
         config = detector.config
         self.runtime, self.precision, self.batch_size = runtime, precision, batch_size
         self.input_size = (int(config.data.height), int(config.data.width))
+        self.min_image_rows = int(config.data.crop_top) + 1  # the test transform crops the top
         self._transform = eval_transform(config)
         self._arrays = InputArrays(config.model.gac.camera_height)
         self._postprocess = postprocess_config(config)
@@ -129,7 +131,7 @@ class Detector3D(StagedModel):
                     threads=threads,
                 )
             self._variables = None
-        self.compile_s = time.perf_counter() - t0
+        self.load_s = time.perf_counter() - t0
 
     # ------------------------------------------------------------------ construction
 
@@ -268,7 +270,7 @@ class Detector3D(StagedModel):
           InputError: naming ``image``, ``P2`` or ``plane``.
         """
         d = self.config.data
-        sample = image_sample(image, P2, plane, min_rows=int(d.crop_top) + 1)
+        sample = image_sample(image, P2, plane, min_rows=self.min_image_rows)
         arrays = self._arrays(self._transform(sample))
         h, w = image.shape[:2]
         return PreparedImage(

@@ -38,6 +38,20 @@ class StagedModel(abc.ABC):
     """``predict`` and ``predict_batch`` of a model with ``prepare`` / ``infer`` / ``finish``."""
 
     batch_size: int = 1
+    input_size: tuple[int, int]
+    min_image_rows: int
+
+    def warmup(self) -> float:
+        """Runs a black image of the network's input size through all three stages once (the
+        jax runtime compiles here instead of in the first real call); returns the seconds."""
+        import time
+
+        h, w = self.input_size
+        image = np.zeros((self.min_image_rows - 1 + h, w, 3), np.uint8)
+        P2 = np.array([[w, 0.0, w / 2, 0.0], [0.0, w, h / 2, 0.0], [0.0, 0.0, 1.0, 0.0]])
+        t0 = time.perf_counter()
+        self.predict(image, P2)
+        return time.perf_counter() - t0
 
     def predict(self, image: np.ndarray, P2: Any, plane: Any = None):
         """The result of one image (Detector3D: :class:`~gac_jax.api.Detections`;
