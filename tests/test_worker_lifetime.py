@@ -36,12 +36,12 @@ def work(_):
 
 if __name__ == "__main__":
     import concurrent.futures, multiprocessing
-    from gac_jax.data.synthetic import writer
+    from gac_jax.data.synthetic import generated_dir
     from gac_jax.data.worker_lifetime import Owner, mark_owner
     mark_owner()
     context = multiprocessing.get_context(sys.argv[1])
     pool = concurrent.futures.ProcessPoolExecutor(
-        2, mp_context=context, initializer=writer._init_worker,
+        2, mp_context=context, initializer=generated_dir.init_worker,
         initargs=(Owner.current().token(),))
     pids = sorted(set(pool.map(work, range(8))))
     print(" ".join(map(str, pids)), flush=True)

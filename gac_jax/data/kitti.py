@@ -378,8 +378,8 @@ def write_split(path: str | os.PathLike, ids: list[str]) -> None:
 
 
 @dataclasses.dataclass(frozen=True)
-class KittiObjectLayout:
-    """Paths of a KITTI object root. ``root/training`` (or ``root/testing``) holds the frames."""
+class KittiRoot:
+    """A KITTI root folder: ``root/training`` (or ``root/testing``) holds the data."""
 
     root: Path
     subset: str = "training"
@@ -390,6 +390,11 @@ class KittiObjectLayout:
     @property
     def frames_dir(self) -> Path:
         return self.root / self.subset
+
+
+@dataclasses.dataclass(frozen=True)
+class KittiObjectLayout(KittiRoot):
+    """Paths of a KITTI object root. ``root/training`` (or ``root/testing``) holds the frames."""
 
     def image(self, frame_id: str, camera: int = 2) -> Path:
         return self.frames_dir / f"image_{camera}" / f"{frame_id}.png"

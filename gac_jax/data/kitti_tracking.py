@@ -135,18 +135,18 @@ class TrackingFrame:
 
 
 @dataclasses.dataclass(frozen=True)
-class KittiTrackingLayout:
-    """Paths of a KITTI tracking root and readers for its sequences."""
+class KittiTrackingLayout(kitti.KittiRoot):
+    """Paths of a KITTI tracking root (``root/training`` holds the sequences) and readers."""
 
-    root: Path
-    subset: str = "training"
-
-    def __post_init__(self):
-        object.__setattr__(self, "root", Path(self.root))
-
-    @property
-    def frames_dir(self) -> Path:
-        return self.root / self.subset
+    @classmethod
+    def locate(cls, image_dir: str | os.PathLike) -> tuple[KittiTrackingLayout, str] | None:
+        """``(layout, sequence)`` of a sequence's image folder ``ROOT/<subset>/image_02/SSSS``
+        whose calibration is where the layout puts it; None for any other folder."""
+        folder = Path(image_dir).resolve()
+        if folder.parent.name != "image_02" or not folder.name.isdigit():
+            return None
+        layout = cls(folder.parents[2], folder.parents[1].name)
+        return (layout, folder.name) if layout.calib(folder.name).is_file() else None
 
     def image(self, sequence: str, frame: int) -> Path:
         return self.frames_dir / "image_02" / sequence / f"{frame:06d}.png"

@@ -7,6 +7,13 @@ Usage::
     from gac_jax.data.synthetic import generate_dataset
     generate_dataset("DIR", 1000, seed=0)   # idempotent; resumes interrupted runs
 
+Driving clips (10 Hz, KITTI tracking layout, labels with track ids, planes, poses)::
+
+    python -m gac_jax.data.synthetic --out DIR --sequences 2 --frames-per-sequence 100
+
+    from gac_jax.data.synthetic.clips import ensure_clips
+    root = ensure_clips(None, 1, 100)       # the cached default clip, generated on first use
+
 Each frame is a straight road seen from a car (camera 1.65 +- 0.05 m above the
 road, pitch within +-1 deg) with lanes, kerbs, sidewalks, buildings, trees and
 poles, and 3-8 Cars plus Pedestrians and Cyclists with KITTI's size statistics
@@ -23,6 +30,8 @@ Modules:
 * ``render`` - ray-casting z-buffer rasteriser; ``materials`` - surface appearance.
 * ``labels`` - KITTI labels from a render; ``lidar`` - sparse depth sampling.
 * ``frame`` - one frame in memory; ``writer`` - the layout on disk, resumable.
+* ``traffic`` - road users that move through a clip; ``drive`` - a clip's world, ego motion
+  and frames; ``clips`` - clips in the KITTI tracking layout, resumable, and the clip cache.
 """
 
 from gac_jax.data.synthetic.writer import GenerationResult, generate_dataset

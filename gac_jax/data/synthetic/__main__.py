@@ -70,8 +70,15 @@ def _fraction(text: str) -> float:
     return value
 
 
+class _Parser(argparse.ArgumentParser):
+    """Bad arguments: one line (``PROG: error: ...``) and exit status 2, no usage block."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="python -m gac_jax.data.synthetic",
         description="Generate a synthetic KITTI-format driving dataset (3D objects + depth).",
     )
@@ -133,10 +140,26 @@ def _check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
         parser.error("--val-fraction: clips have no splits")
 
 
-def _clips(args: argparse.Namespace, classes) -> int:
+def _generate(args: argparse.Namespace, what: str, call):
+    """Runs ``call()``: (result, seconds), or (None, exit status) after one line on stderr."""
     start = time.perf_counter()
     try:
-        result = generate_clips(
+        result = call()
+    except (ValueError, OSError, KittiFormatError) as e:
+        message = error_line(e, args.out) if isinstance(e, OSError) else str(e)
+        print(f"error: {message}", file=sys.stderr)
+        return None, 1
+    except KeyboardInterrupt:
+        print(f"interrupted: run the same command again to finish the {what}", file=sys.stderr)
+        return None, 130
+    return result, time.perf_counter() - start
+
+
+def _clips(args: argparse.Namespace, classes) -> int:
+    result, took = _generate(
+        args,
+        "clips",
+        lambda: generate_clips(
             args.out,
             args.sequences,
             args.frames_per_sequence,
@@ -149,15 +172,10 @@ def _clips(args: argparse.Namespace, classes) -> int:
             overwrite=args.overwrite,
             progress=not args.quiet,
             announce=None if args.quiet else print,
-        )
-    except (ValueError, OSError, KittiFormatError) as e:
-        message = error_line(e, args.out) if isinstance(e, OSError) else str(e)
-        print(f"error: {message}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("interrupted: run the same command again to finish the clips", file=sys.stderr)
-        return 130
-    took = time.perf_counter() - start
+        ),
+    )
+    if result is None:
+        return took
     total = result.num_sequences * result.frames_per_sequence
     if result.generated == 0:
         print(
@@ -179,9 +197,10 @@ def main(argv: list[str] | None = None) -> int:
     classes = dict(args.classes) if args.classes else None
     if args.sequences is not None:
         return _clips(args, classes)
-    start = time.perf_counter()
-    try:
-        result = generate_dataset(
+    result, took = _generate(
+        args,
+        "dataset",
+        lambda: generate_dataset(
             args.out,
             args.num,
             args.seed,
@@ -193,15 +212,10 @@ def main(argv: list[str] | None = None) -> int:
             workers=args.workers,
             overwrite=args.overwrite,
             progress=not args.quiet,
-        )
-    except (ValueError, OSError, KittiFormatError) as e:
-        message = error_line(e, args.out) if isinstance(e, OSError) else str(e)
-        print(f"error: {message}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("interrupted: run the same command again to finish the dataset", file=sys.stderr)
-        return 130
-    took = time.perf_counter() - start
+        ),
+    )
+    if result is None:
+        return took
     if result.generated == 0:
         print(f"{result.root}: complete dataset of {result.num_frames} frames already there")
     else:

@@ -19,7 +19,6 @@ depends on the arguments only, not on the number of worker processes.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import shutil
 import sys
@@ -32,22 +31,30 @@ import numpy as np
 from gac_jax.data import files, kitti
 from gac_jax.data import kitti_tracking as tracking
 from gac_jax.data.cache import default_cache_dir
-from gac_jax.data.synthetic import calibration, drive, rigs
-from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
-from gac_jax.data.synthetic.writer import check_target, png_bytes, remove_temporaries, run_jobs
+from gac_jax.data.synthetic import calibration, drive
+from gac_jax.data.synthetic.generated_dir import (
+    check_target,
+    finish_writing,
+    png_bytes,
+    run_jobs,
+    start_writing,
+)
+from gac_jax.data.synthetic.scene import DEFAULT_COUNTS
+from gac_jax.data.synthetic.writer import SceneArguments
 
 FORMAT_VERSION = 1  # bump whenever the generated content changes (it keys idempotence)
 DONE = "clips.json"
 MARKER = ".clips_in_progress.json"
 PARTIAL = ".clips_partial"
 OWNED = ("training", PARTIAL)
-# Seconds to render one 375x1242 frame on one core of a 2-core Xeon (shared, loaded);
-# only for the time estimate ensure_clips prints (benchmarks/bench_clips.py measures it).
-SECONDS_PER_FRAME = 1.0
+# Seconds to render and write one 375x1242 clip frame in one process: 0.13 s CPU, 0.45 s
+# wall on a shared 2-core Xeon at load 11 (benchmarks/bench_clips.py); only for the time
+# estimate ensure_clips prints.
+SECONDS_PER_FRAME = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
-class ClipSpec:
+class ClipSpec(SceneArguments):
     """The arguments that determine a clip set's content."""
 
     num_sequences: int
@@ -60,32 +67,13 @@ class ClipSpec:
 
     def validate(self) -> None:
         """Raises ValueError with a clear message for unusable arguments."""
-        rigs.check_rig_set(self.rigs)
         for name, value, most in (
             ("number of sequences", self.num_sequences, 10_000),
             ("frames per sequence", self.frames_per_sequence, 1_000_000),
         ):
             if not isinstance(value, int | np.integer) or not 1 <= value <= most:
                 raise ValueError(f"{name} must be an integer in 1..{most:,}, got {value!r}")
-        if not isinstance(self.seed, int | np.integer) or self.seed < 0:
-            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
-        if not (32 <= self.height <= 4096 and 64 <= self.width <= 8192):
-            raise ValueError(
-                f"image size must be 32..4096 x 64..8192 pixels, got {self.height}x{self.width}"
-            )
-        for name, lo, hi in self.classes:
-            if name not in CLASS_SIZES:
-                raise ValueError(f"unknown class {name!r} (known: {', '.join(CLASS_SIZES)})")
-            if not 0 <= lo <= hi <= 50:
-                raise ValueError(f"class {name}: need 0 <= min <= max <= 50, got {lo}..{hi}")
-
-    @property
-    def image_size(self) -> tuple[int, int]:
-        return (self.height, self.width)
-
-    @property
-    def counts(self) -> dict[str, tuple[int, int]]:
-        return {name: (lo, hi) for name, lo, hi in self.classes}
+        self.validate_scene()
 
     def to_json(self) -> dict:
         return {
@@ -253,13 +241,7 @@ def generate_clips(
     complete = all(_sequence_complete(root, s) for s in range(num_sequences))
     if state == "done" and not todo and complete:
         return ClipsResult(root, num_sequences, frames_per_sequence, 0, [])
-    root.mkdir(parents=True, exist_ok=True)
-    if not os.access(root, os.W_OK):
-        raise PermissionError(f"{root}: directory is not writable")
-    with files.atomic_write(root / MARKER) as f:
-        json.dump(spec.to_json(), f, indent=1)
-    (root / DONE).unlink(missing_ok=True)  # incomplete until everything is back
-    remove_temporaries(root, OWNED)
+    start_writing(root, spec.to_json(), DONE, MARKER, OWNED)
     if todo and announce is not None:
         procs = min(workers or os.cpu_count() or 1, len(todo))
         pixels = spec.height * spec.width / (calibration.KITTI_SIZE[0] * calibration.KITTI_SIZE[1])
@@ -275,9 +257,7 @@ def generate_clips(
         _finish_sequence(root, spec, sequence)
     if (root / PARTIAL).is_dir() and not any((root / PARTIAL).iterdir()):
         (root / PARTIAL).rmdir()
-    with files.atomic_write(root / DONE) as f:
-        json.dump(spec.to_json(), f, indent=1)
-    (root / MARKER).unlink(missing_ok=True)
+    finish_writing(root, spec.to_json(), DONE, MARKER)
     return ClipsResult(root, num_sequences, frames_per_sequence, len(todo), seconds)
 
 

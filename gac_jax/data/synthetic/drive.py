@@ -83,9 +83,11 @@ class EgoMotion:
 
     def pose(self, k: int) -> np.ndarray:
         """(3, 4) camera-to-world pose of frame ``k`` (world = frame 0's camera frame)."""
-        R0, Rk = self.road_rotation(0), self.road_rotation(k)
-        rotation = R0 @ Rk.T
-        translation = R0 @ np.array([0.0, 0.0, self.travelled(k)])
+        # X_road = Rk^T X_k + (lateral, 0, travelled) and X_0 = R0 (X_road - (lateral, 0, 0)):
+        # the rotation R0 Rk^T is a pitch difference (the yaw cancels), the translation the
+        # distance travelled along the road direction seen from frame 0
+        rotation = rotation_x(self.pitch(0) - self.pitch(k))
+        translation = self.road_rotation(0)[:, 2] * self.travelled(k)
         return np.concatenate([rotation, translation[:, None]], axis=1) + 0.0  # (no -0.0)
 
     def plane(self, k: int) -> np.ndarray:
@@ -222,6 +224,7 @@ class ClipFrame:
       view: :class:`render.ViewRender` of ``P2`` (image, depth, object ids).
       objects: KITTI labels (labelled objects first, DontCare last).
       track_ids: (M,) track id per label line (-1 for DontCare).
+      label_source: (M,) index into ``scene.objects`` (and ``view.object_ids``) per line.
       plane: (4,) ground plane; pose: (3, 4) camera-to-world.
     """
 
@@ -229,6 +232,7 @@ class ClipFrame:
     view: render.ViewRender
     objects: KittiObjects
     track_ids: np.ndarray
+    label_source: np.ndarray
     plane: np.ndarray
     pose: np.ndarray
 
@@ -243,5 +247,11 @@ def render_clip_frame(drive: Drive, seed: int, sequence: int, k: int) -> ClipFra
     objects, source = labels.frame_labels(scene, view, drive.calib.P2, drive.image_size)
     track_ids = np.where(objects.type == "DontCare", -1, ids[source])
     return ClipFrame(
-        scene, view, objects, track_ids.astype(np.int64), drive.ego.plane(k), drive.ego.pose(k)
+        scene,
+        view,
+        objects,
+        track_ids.astype(np.int64),
+        source,
+        drive.ego.plane(k),
+        drive.ego.pose(k),
     )

@@ -15,8 +15,9 @@ road, metres); clip time runs from 0 s at frame 0. Where a road user starts come
 Motion is straight and at constant velocity. Road users fill the road around the ego
 vehicle's path with the density a single frame has (``counts`` per 66 m of depth), and a
 road user is kept only if it is within the viewing range (4-95 m ahead of the ego) at
-some time of the clip and its footprint stays clear of the roadside's obstacles, the ego
-vehicle and the road users already placed throughout the clip (checked every 0.25 s).
+some time of the clip; it is placed where its footprint stays clear of the roadside's
+obstacles, the ego vehicle and the road users already placed throughout the clip (checked
+every 0.25 s; up to 10 places are tried, as a single frame tries 30).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ MAX_SPEED = {
     "Pedestrian": WALK_SPEED["Pedestrian"][1],
 }
 CHECK_STEP = 0.25  # seconds between the clearance checks
+TRIES = 10  # places tried for a road user whose first place is not clear
 EGO_HALF = (3.0, 1.0)  # half length and width of the ego vehicle's footprint (m)
 EGO_OFFSET = -1.0  # its centre relative to the camera along the road (m)
 
@@ -162,20 +164,21 @@ def place_movers(b, duration: float, ego_speed: float) -> list[Mover]:
         x_lo = view_lo - duration * max(0.0, MAX_SPEED[cls] - ego_speed)
         x_hi = view_hi + duration * (ego_speed + MAX_SPEED[cls])
         for _ in range(int(rng.poisson(density * (x_hi - x_lo)))):
-            x0 = rng.uniform(x_lo, x_hi)
-            dims = b.sample_dimensions(cls)
-            t, s, psi, support, kind = b.propose(cls)
-            if kind != "crossing":
-                s = x0  # (crossing pedestrians stay at the zebra crossing)
-            vt, vs, psi = _motion(b, cls, t, psi, kind, lane_speed, duration)
-            ahead = (s, s + (vs - ego_speed) * duration)  # relative position at 0 and the end
-            if max(ahead) < view_lo or min(ahead) > view_hi:
-                continue  # never in view
-            margin = 0.3 if cls == "Car" else 0.15
-            track = _Track(t, s, vt, vs, dims[2] / 2, dims[1] / 2, psi, margin)
-            if not _clear(track, [ego, *statics, *placed], times, duration):
-                continue
-            placed.append(track)
-            parts = b.object_parts(cls, dims)
-            movers.append(Mover(len(movers), cls, dims, parts, t, s, vt, vs, psi, support))
+            for _ in range(TRIES):  # a spot that is not clear is tried again elsewhere
+                x0 = rng.uniform(x_lo, x_hi)
+                dims = b.sample_dimensions(cls)
+                t, s, psi, support, kind = b.propose(cls)
+                if kind != "crossing":
+                    s = x0  # (crossing pedestrians stay at the zebra crossing)
+                vt, vs, psi = _motion(b, cls, t, psi, kind, lane_speed, duration)
+                ahead = (s, s + (vs - ego_speed) * duration)  # relative position, start and end
+                if max(ahead) < view_lo or min(ahead) > view_hi:
+                    break  # never in view: not a road user of this clip
+                margin = 0.3 if cls == "Car" else 0.15
+                track = _Track(t, s, vt, vs, dims[2] / 2, dims[1] / 2, psi, margin)
+                if _clear(track, [ego, *statics, *placed], times, duration):
+                    placed.append(track)
+                    parts = b.object_parts(cls, dims)
+                    movers.append(Mover(len(movers), cls, dims, parts, t, s, vt, vs, psi, support))
+                    break
     return movers

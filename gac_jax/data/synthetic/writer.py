@@ -30,10 +30,7 @@ written, so an unrelated non-empty directory is never touched.
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
-import json
-import multiprocessing
 import os
 import shutil
 import time
@@ -46,8 +43,14 @@ from gac_jax.data import files
 from gac_jax.data.kitti import write_calib, write_label, write_plane, write_split
 from gac_jax.data.synthetic import calibration, rigs
 from gac_jax.data.synthetic.frame import frame_rig, make_frame
+from gac_jax.data.synthetic.generated_dir import (
+    check_target,
+    finish_writing,
+    png_bytes,
+    run_jobs,
+    start_writing,
+)
 from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
-from gac_jax.data.worker_lifetime import Owner, exit_with_owner
 
 FORMAT_VERSION = 1  # bump whenever the generated content changes (it keys idempotence)
 MARKER = ".synthetic_in_progress.json"
@@ -55,8 +58,38 @@ DONE = "synthetic.json"
 OWNED = ("training", "ImageSets", "depth")  # what a fresh start may delete (only in our own dirs)
 
 
+class SceneArguments:
+    """What frames and clips share: seed, image size (``height``, ``width``), rig set and the
+    road users' ``classes`` (name, min, max); checked by :meth:`validate_scene`."""
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return (self.height, self.width)
+
+    @property
+    def counts(self) -> dict[str, tuple[int, int]]:
+        return {name: (lo, hi) for name, lo, hi in self.classes}
+
+    def validate_scene(self) -> None:
+        """Raises ValueError with a clear message for unusable shared arguments."""
+        rigs.check_rig_set(self.rigs)
+        if not isinstance(self.seed, int | np.integer) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
+        if not (32 <= self.height <= 4096 and 64 <= self.width <= 8192):
+            raise ValueError(
+                f"image size must be 32..4096 x 64..8192 pixels, got {self.height}x{self.width}"
+            )
+        for name, lo, hi in self.classes:
+            if name not in CLASS_SIZES:
+                raise ValueError(f"unknown class {name!r} (known: {', '.join(CLASS_SIZES)})")
+            if not 0 <= lo <= hi <= 50:
+                raise ValueError(f"class {name}: need 0 <= min <= max <= 50, got {lo}..{hi}")
+        if len({c[0] for c in self.classes}) != len(self.classes):
+            raise ValueError("a class is listed twice")
+
+
 @dataclasses.dataclass(frozen=True)
-class DatasetSpec:
+class DatasetSpec(SceneArguments):
     """The arguments that determine a generated dataset's content."""
 
     num_frames: int
@@ -69,36 +102,15 @@ class DatasetSpec:
 
     def validate(self) -> None:
         """Raises ValueError with a clear message for unusable arguments."""
-        rigs.check_rig_set(self.rigs)
         if not isinstance(self.num_frames, int | np.integer) or self.num_frames < 1:
             raise ValueError(
                 f"number of frames must be a positive integer, got {self.num_frames!r}"
             )
         if self.num_frames > 1_000_000:
             raise ValueError(f"at most 1,000,000 frames (6-digit ids), got {self.num_frames}")
-        if not isinstance(self.seed, int | np.integer) or self.seed < 0:
-            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
-        if not (32 <= self.height <= 4096 and 64 <= self.width <= 8192):
-            raise ValueError(
-                f"image size must be 32..4096 x 64..8192 pixels, got {self.height}x{self.width}"
-            )
+        self.validate_scene()
         if not 0.0 <= self.val_fraction <= 1.0:
             raise ValueError(f"val fraction must be in [0, 1], got {self.val_fraction}")
-        for name, lo, hi in self.classes:
-            if name not in CLASS_SIZES:
-                raise ValueError(f"unknown class {name!r} (known: {', '.join(CLASS_SIZES)})")
-            if not 0 <= lo <= hi <= 50:
-                raise ValueError(f"class {name}: need 0 <= min <= max <= 50, got {lo}..{hi}")
-        if len({c[0] for c in self.classes}) != len(self.classes):
-            raise ValueError("a class is listed twice")
-
-    @property
-    def image_size(self) -> tuple[int, int]:
-        return (self.height, self.width)
-
-    @property
-    def counts(self) -> dict[str, tuple[int, int]]:
-        return {name: (lo, hi) for name, lo, hi in self.classes}
 
     def to_json(self) -> dict:
         return {
@@ -227,22 +239,6 @@ class _Job:
     split_of: dict[int, str]
 
 
-def png_bytes(array: np.ndarray, png_filter: int, huffman_only: bool = False) -> bytes:
-    """PNG bytes at compression level 1 with a fixed row filter (BGR for colour).
-
-    Measured here: for the noisy colour renders a SUB filter with Huffman-only
-    coding is twice as fast as OpenCV's default and smaller; depth maps
-    compress best with UP (dense) or no filter (sparse).
-    """
-    params = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, png_filter]
-    if huffman_only:
-        params += [cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
-    ok, buf = cv2.imencode(".png", array, params)
-    if not ok:
-        raise ValueError(f"cannot encode an array of shape {array.shape} as PNG")
-    return buf.tobytes()
-
-
 def _write_frame(job: _Job, index: int) -> float:
     """Renders and writes frame ``index``; returns the seconds it took."""
     start = time.perf_counter()
@@ -270,13 +266,6 @@ def _write_frame(job: _Job, index: int) -> float:
     return time.perf_counter() - start
 
 
-def _init_worker(owner: str) -> None:
-    cv2.setNumThreads(1)
-    # The pool never outlives a killed generator. The owner is named: under forkserver a
-    # worker's parent is the fork server, not the generating process.
-    exit_with_owner(Owner.parse(owner))
-
-
 @dataclasses.dataclass
 class GenerationResult:
     """What :func:`generate_dataset` did: ``generated`` frames newly rendered and written, their
@@ -291,57 +280,6 @@ class GenerationResult:
 def _check_target(root: Path, spec: DatasetSpec, overwrite: bool) -> str:
     """Decides what to do with ``root``: 'done', 'resume' or 'fresh' (after cleaning our files)."""
     return check_target(root, spec.to_json(), overwrite, DONE, MARKER, OWNED)
-
-
-def check_target(
-    root: Path, want: dict, overwrite: bool, done_name: str, marker_name: str, owned
-) -> str:
-    """'done', 'resume' or 'fresh' for a generated directory described by ``want``.
-
-    ``done_name`` (the description, written last) and ``marker_name`` (written first)
-    say what ``root`` holds; 'fresh' deletes the stale ``owned`` folders of our own
-    directory. Raises ValueError for a directory of other arguments (unless
-    ``overwrite``) or a non-empty directory that is not ours.
-    """
-    done, marker = root / done_name, root / marker_name
-    if done.exists():
-        have = _read_json(done)
-        if have == want:
-            return "done"
-        if not overwrite:
-            raise ValueError(
-                f"{root} holds a synthetic dataset made with other arguments "
-                f"({_diff(have, want)}); use another directory or overwrite it (--overwrite)"
-            )
-    elif marker.exists():
-        if _read_json(marker) == want:
-            return "resume"
-    elif root.exists() and any(root.iterdir()):
-        raise ValueError(
-            f"{root} is not empty and holds no synthetic dataset ({done_name} missing); "
-            "refusing to write into it: choose an empty or new directory"
-        )
-    for name in (*owned, done_name):  # our own, stale content
-        p = root / name
-        if p.is_dir():
-            shutil.rmtree(p)
-        elif p.exists():
-            p.unlink()
-    return "fresh"
-
-
-def _read_json(path: Path):
-    try:
-        return json.loads(files.read_bytes(path, "dataset description"))
-    except json.JSONDecodeError as e:
-        raise files.KittiFormatError(path, f"not valid JSON ({e.msg})", e.lineno) from None
-
-
-def _diff(have, want) -> str:
-    if not isinstance(have, dict):
-        return "unreadable description"
-    keys = sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
-    return ", ".join(f"{k}: {have.get(k)!r} there, {want.get(k)!r} asked" for k in keys)
 
 
 def generate_dataset(
@@ -421,13 +359,7 @@ def generate_dataset(
     ]
     if state == "done" and not todo and all(p.exists() for p in dataset_files):
         return GenerationResult(root, num_frames, 0, [])
-    root.mkdir(parents=True, exist_ok=True)
-    if not os.access(root, os.W_OK):
-        raise PermissionError(f"{root}: directory is not writable")
-    with files.atomic_write(root / MARKER) as f:
-        json.dump(spec.to_json(), f, indent=1)
-    (root / DONE).unlink(missing_ok=True)  # incomplete until everything is back
-    remove_temporaries(root)
+    start_writing(root, spec.to_json(), DONE, MARKER, OWNED)
     if state != "fresh":
         todo = [
             i
@@ -445,61 +377,9 @@ def generate_dataset(
             f.write(calibration.cam_to_cam_text(rig, rigs.image_size(rig, spec.image_size)))
         with files.atomic_write(raw / "calib_velo_to_cam.txt") as f:
             f.write(calibration.velo_to_cam_text(rig))
-    with files.atomic_write(root / DONE) as f:
-        json.dump(spec.to_json(), f, indent=1)
-    (root / MARKER).unlink(missing_ok=True)
+    finish_writing(root, spec.to_json(), DONE, MARKER)
     return GenerationResult(root, num_frames, len(todo), seconds)
-
-
-def remove_temporaries(root: Path, owned=OWNED) -> None:
-    """Deletes half-written temporary files an interrupted run left behind."""
-    for sub in owned:
-        if (root / sub).is_dir():
-            for p in (root / sub).rglob(".*.tmp"):
-                p.unlink(missing_ok=True)
 
 
 def _run(job: _Job, todo: list[int], workers: int | None, progress: bool) -> list[float]:
     return run_jobs(_write_frame, job, todo, workers, progress, "synthetic KITTI")
-
-
-def run_jobs(fn, job, todo: list, workers: int | None, progress: bool, desc: str) -> list[float]:
-    """Calls ``fn(job, item)`` for every item of ``todo`` in ``workers`` processes (default: one
-    per core; 1 = in this process), in order; returns what the calls returned (seconds).
-
-    The pool uses forkserver (spawn where there is none) and never outlives this process.
-    """
-    if workers is None:
-        workers = os.cpu_count() or 1
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(todo), unit="frame", desc=desc)
-    seconds = []
-    try:
-        if workers == 1 or len(todo) <= 1:
-            for item in todo:
-                seconds.append(fn(job, item))
-                if bar is not None:
-                    bar.update(1)
-            return seconds
-        methods = multiprocessing.get_all_start_methods()
-        context = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
-        chunk = max(1, min(16, len(todo) // (workers * 8)))
-        with concurrent.futures.ProcessPoolExecutor(
-            max_workers=min(workers, len(todo)),
-            mp_context=context,
-            initializer=_init_worker,
-            initargs=(Owner.current().token(),),
-        ) as pool:
-            for dt in pool.map(fn, [job] * len(todo), todo, chunksize=chunk):
-                seconds.append(dt)
-                if bar is not None:
-                    bar.update(1)
-        return seconds
-    finally:
-        if bar is not None:
-            bar.close()
