@@ -220,7 +220,6 @@ def main() -> None:
     from gac_jax.api.detector import Detector3D
     from gac_jax.deploy.runtimes import RUNTIME_PRECISIONS, check_runtime, cpu_flags
     from gac_jax.streams import sources
-    from gac_jax.streams.pipeline import warm_up
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--configs", default="default,paper")
@@ -280,9 +279,7 @@ def main() -> None:
                     detector = Detector3D(
                         with_dtype(loaded, runtime, precision), tmp / f"workdir_{name}", **model
                     )
-                source = sources.VideoSource(video, sources.load_projection(calib), str(calib))
-                warm_up(detector, source.read())
-                source.close()
+                detector.warmup()
                 row = {"config": name, "runtime": runtime, "precision": precision, "frames": n}
                 row.update(measure(detector, video, calib, tmp / f"out_{name}_{label}", args))
                 row["setup_s"] = time.perf_counter() - t0 - row.pop("wall_s")

@@ -232,7 +232,7 @@ def summary_lines(report, written_to: list[str], detector, threads: int) -> list
 def run_stream(args: argparse.Namespace, threads: int) -> int:
     """Runs the stream command; returns the exit code (errors raise, see ``predict.main``)."""
     from gac_jax.streams import outputs, sources
-    from gac_jax.streams.pipeline import StreamPipeline, warm_up
+    from gac_jax.streams.pipeline import StreamPipeline
 
     workdir = Path(args.workdir)
     if not workdir.is_dir():
@@ -247,11 +247,7 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
         fps = f"{source.fps:g} frames/s" if source.fps else "fps unknown"
         count = f", {source.expected_frames} frames" if source.expected_frames else ""
         print(f"{detector.weights}: {source.name} ({w}x{h}, {fps}{count}) -> {out}", flush=True)
-        first = source.read()
-        if first is None:
-            raise KittiFormatError(source.name, "no frame")
-        print(f"warm-up (compile) on the first frame: {warm_up(detector, first):.1f} s", flush=True)
-        source = _Rewound(source, first, args.max_frames)
+        print(f"warm-up (compile): {detector.warmup():.1f} s", flush=True)
         if args.realtime and not source.live:  # a recording replayed as a live camera
             source = sources.PacedSource(source, source.fps or DEFAULT_FPS)
         video = None
@@ -275,6 +271,7 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
             results,
             realtime=args.realtime,
             batch_size=1 if args.realtime else args.batch_size,
+            max_frames=args.max_frames,
             report_every=args.report_every,
             log=lambda line: print(line, flush=True),
         )
@@ -296,36 +293,6 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
     if report.error is not None:
         raise report.error
     return EXIT_INTERRUPTED if report.interrupted else 0
-
-
-class _Rewound:
-    """``source`` with ``first`` (already read for the warm-up) given again first, ending after
-    ``max_frames`` frames (None: at the source's end). The first frame's clock restarts."""
-
-    def __init__(self, source, first, max_frames: int | None):
-        import time
-
-        first.t_read = time.perf_counter()
-        self._source, self._first, self._left = source, first, max_frames
-        self.name, self.size, self.fps = source.name, source.size, source.fps
-        self.live, self.expected_frames = source.live, source.expected_frames
-
-    def read(self):
-        if self._left is not None:
-            if self._left <= 0:
-                return None
-            self._left -= 1
-        if self._first is not None:
-            frame, self._first = self._first, None
-            return frame
-        return self._source.read()
-
-    def check_complete(self) -> None:
-        if self._left is None or self._left > 0:
-            self._source.check_complete()
-
-    def close(self) -> None:
-        self._source.close()
 
 
 if __name__ == "__main__":

@@ -112,6 +112,7 @@ class StreamPipeline:
       realtime: keep only the newest frame when the detector falls behind (live sources).
       batch_size: frames per network call (realtime: what is waiting, up to this).
       queue_size: frames each queue holds between two stages.
+      max_frames: stop reading after this many frames (None: at the source's end).
       report_every: seconds between progress lines (``log``); 0: none.
       log: where progress and notes go (one line each).
     """
@@ -126,6 +127,7 @@ class StreamPipeline:
         realtime: bool = False,
         batch_size: int = 1,
         queue_size: int = 1,
+        max_frames: int | None = None,
         report_every: float = 5.0,
         log: Callable[[str], None] = print,
         draw: Callable = detection_picture,
@@ -133,6 +135,7 @@ class StreamPipeline:
         self.source, self.detector = source, detector
         self.video, self.results = video, results
         self.realtime, self.batch_size = realtime, batch_size
+        self.max_frames = max_frames
         self.report_every, self.log, self.draw = report_every, log, draw
         self.rates = StreamRates()
         self._read_q = LatestSlot() if realtime else queue.Queue(queue_size)
@@ -217,6 +220,9 @@ class StreamPipeline:
     def _read(self) -> None:
         try:
             while not self._stop.is_set():
+                if self.max_frames is not None and self.delivered >= self.max_frames:
+                    self._source_ended = True  # as asked: not an interruption
+                    break
                 t0 = (time.perf_counter(), time.thread_time())
                 frame = self.source.read()
                 self._busy(READ, t0)
@@ -383,12 +389,3 @@ class StreamPipeline:
             error=self.errors[0] if self.errors else None,
             stage_ms=self.stage_ms(),
         )
-
-
-def warm_up(detector, frame: Frame) -> float:
-    """Runs ``frame`` once through prepare/infer/finish (compiles what the detector compiles
-    on first use); returns seconds."""
-    t0 = time.perf_counter()
-    prepared = [detector.prepare(frame.image, frame.P2, frame.plane)]
-    detector.finish(detector.infer(prepared), prepared)
-    return time.perf_counter() - t0

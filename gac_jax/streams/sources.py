@@ -33,6 +33,7 @@ import numpy as np
 
 from gac_jax.data.files import KittiFormatError, read_image
 from gac_jax.data.kitti import read_calib, read_plane
+from gac_jax.data.kitti_tracking import KittiTrackingLayout
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 CENTRE_BAND = 0.6  # the principal point must lie in the middle 60 % of each image axis
@@ -236,13 +237,15 @@ def sequence_images(folder: Path) -> list[Path]:
     return images
 
 
-def tracking_calibration(folder: Path) -> Path | None:
-    """The calibration of an image sequence folder: ``ROOT/training/calib/SSSS.txt`` of the
-    tracking layout (``folder`` = ``ROOT/training/image_02/SSSS``), else ``folder/calib.txt``."""
-    for path in (folder.parent.parent / "calib" / f"{folder.name}.txt", folder / "calib.txt"):
-        if path.is_file():
-            return path
-    return None
+def sequence_files(folder: Path) -> tuple[Path | None, Path | None]:
+    """``(calibration, planes folder)`` of an image sequence folder: in the KITTI tracking
+    layout (``folder`` = ``ROOT/training/image_02/SSSS``) ``ROOT/training/calib/SSSS.txt`` and
+    ``ROOT/training/planes/SSSS``; else ``folder/calib.txt`` (if present) and no planes."""
+    located = KittiTrackingLayout.locate(folder)
+    if located is not None:
+        layout, sequence = located
+        return layout.calib(sequence), layout.plane(sequence, 0).parent
+    return (folder / "calib.txt" if (folder / "calib.txt").is_file() else None), None
 
 
 class SequenceSource:
@@ -264,25 +267,24 @@ class SequenceSource:
         self.name = os.fspath(folder)
         self.images = sequence_images(folder)
         self.expected_frames = len(self.images)
+        layout_calib, self.planes_dir = sequence_files(folder)
         if calib is None:
-            calib = tracking_calibration(folder)
+            calib = layout_calib
             if calib is None:
-                looked = folder.parent.parent / "calib" / f"{folder.name}.txt"
                 raise KittiFormatError(
                     folder,
-                    f"no calibration found (looked for {looked} and {folder / 'calib.txt'}); "
-                    "pass --calib FILE",
+                    "no calibration found (not in the KITTI tracking layout "
+                    f"ROOT/training/image_02/SSSS, no {folder / 'calib.txt'}); pass --calib FILE",
                 )
         self.P2 = load_projection(calib, camera)
         self.plane = plane
-        self.planes_dir = folder.parent.parent / "planes" / folder.name
         self.fps = fps
         self.index = 0
         self.size = read_image(self.images[0]).shape[:2]
         check_calibration(self.P2, self.size, os.fspath(calib), self.name)
 
     def frame_plane(self, image: Path) -> np.ndarray | None:
-        if self.plane is not None:
+        if self.plane is not None or self.planes_dir is None:
             return self.plane
         path = self.planes_dir / f"{image.stem}.txt"
         return read_plane(path) if path.is_file() else None
