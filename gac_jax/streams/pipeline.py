@@ -182,10 +182,6 @@ class StreamPipeline:
             return 0
         return self._read_q.dropped + self._prepared_q.dropped
 
-    @property
-    def stopping(self) -> bool:
-        return self._stop.is_set()
-
     def _fail(self, error: BaseException, rank: int) -> None:
         """A stage failed: what is upstream of it is dropped, what is past it is finished."""
         with self._lock:
