@@ -51,21 +51,17 @@ from machine_info import describe_machine, one_line  # noqa: E402
 
 from gac_jax.data.files import KittiFormatError  # noqa: E402
 from gac_jax.deploy.int8 import DEFAULT_FRAMES, Int8Settings  # noqa: E402
-from gac_jax.deploy.runtimes import RuntimeUnavailableError, check_runtime  # noqa: E402
+from gac_jax.deploy.runtimes import (  # noqa: E402
+    RUNTIME_PRECISIONS,
+    RuntimeUnavailableError,
+    check_runtime,
+)
 from gac_jax.evaluation.ap_resampling import (  # noqa: E402
     bootstrap_differences,
     car_ap40,
     fold_differences,
 )
 
-COMBOS = (
-    ("jax", "f32"),
-    ("jax", "bf16"),
-    ("onnxruntime", "f32"),
-    ("openvino", "f32"),
-    ("openvino", "bf16"),
-    ("openvino", "int8"),
-)
 REPO = Path(__file__).resolve().parents[1]
 REAL_FRAMES = REPO / "tests" / "data" / "kitti" / "object"  # split "labeled"
 AP_TOLERANCE = 0.5  # AP points, every Car AP|R40 entry
@@ -101,7 +97,7 @@ class Combo:
 
 def available(args) -> list[Combo]:
     """The combos of ``--combos`` (default all) that run here, int8 ones per ``--keep-float``."""
-    wanted = COMBOS
+    wanted = RUNTIME_PRECISIONS
     if args.combos:
         wanted = [tuple(c.split(":")) for c in args.combos.split(",")]
     combos = []

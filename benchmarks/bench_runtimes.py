@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 
 from machine_info import describe_machine, one_line  # benchmarks/ is on sys.path
-from random_weights import random_variables
+from random_weights import random_variables, timing_detector_config
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -99,7 +99,7 @@ def paths_for(task, name, args, tmp: Path):
 
     from gac_jax.builders import depth as depth_builders
     from gac_jax.builders import detect3d as det_builders
-    from gac_jax.config import apply_overrides, load_config
+    from gac_jax.config import load_config
     from gac_jax.deploy.export.networks import depth_graph, detector_graph
     from gac_jax.deploy.runtimes import (
         DEPTH_OUTPUTS,
@@ -110,20 +110,12 @@ def paths_for(task, name, args, tmp: Path):
     )
     from gac_jax.geometry import level_plane
 
-    config = load_config(str(REPO / CONFIGS[(task, name)]))
+    if task == "detect3d":
+        config = timing_detector_config(str(REPO / CONFIGS[(task, name)]), KITTI)
+    else:
+        config = load_config(str(REPO / CONFIGS[(task, name)]))
     d = config.data
     if task == "detect3d":
-        apply_overrides(
-            config,
-            [
-                "data.source=kitti",
-                f"data.root={KITTI}",
-                "data.train_split=labeled",
-                "anchors.prior_min_count=1",
-                "eval.score_threshold=0.0",
-                "eval.top_k=100",
-            ],
-        )
         layout = det_builders.anchor_layout(config)
         model = det_builders.build_model(config, layout.anchors_per_cell)
         variables = random_variables(model, config, det_builders.init_variables)

@@ -12,6 +12,7 @@ the layers below it:
     runs        trainers/, trained/ (a trained model from a run folder or converted weights)
     deploy      deploy/ (ONNX export, ONNX Runtime / OpenVINO)
     api         api/ (the inference API: Detector3D, DepthPredictor)
+    streams     streams/ (video files, cameras, image sequences through a detector)
     cli         cli/ (evaluate, predict)
 
 Imports are read with ``ast`` from every ``.py`` file: module level, inside functions and
@@ -34,6 +35,7 @@ LAYERS = (
     ("runs", ("gac_jax.trainers", "gac_jax.trained")),
     ("deploy", ("gac_jax.deploy",)),
     ("api", ("gac_jax.api",)),
+    ("streams", ("gac_jax.streams",)),
     ("cli", ("gac_jax.cli",)),
 )
 

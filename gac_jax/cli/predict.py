@@ -1,13 +1,13 @@
 """Run a trained detector on any KITTI-format images: ``python -m gac_jax.cli.predict``.
 
     python -m gac_jax.cli.predict --workdir W IMAGE_OR_DIR [--calib FILE_OR_DIR] [--out DIR]
-        [--no-images] [--step N | --checkpoint DIR --config C] [--camera 2|3]
+        [--no-images] [--step N | --checkpoint DIR --config C] [--calib-camera 2|3]
         [--score-threshold S] [--batch-size B] [--threads T]
         [--runtime jax|onnxruntime|openvino] [--precision f32|bf16|int8] [--export DIR]
         [--int8-frames N] [--int8-seed S] [--int8-keep-float REGEX ...]
 
 ``IMAGE_OR_DIR`` is one image (PNG/JPEG) or a folder of them. Each image needs
-its KITTI calibration file (``P2: ...`` line; ``--camera 3`` uses ``P3``):
+its KITTI calibration file (``P2: ...`` line; ``--calib-camera 3`` uses ``P3``):
 ``--calib FILE`` serves every image, ``--calib DIR`` holds ``<stem>.txt`` per
 image; without ``--calib`` the KITTI layout is assumed (``<images>/../calib/<stem>.txt``,
 else ``<stem>.txt`` beside the image). An image whose KITTI layout has a ground-plane file
@@ -22,6 +22,10 @@ plus ``OUT/pictures/grid.png``. ``OUT`` defaults to ``W/predict/<input name>``.
 ``--runtime onnxruntime|openvino`` runs the exported network (:mod:`gac_jax.deploy.runtimes`; the
 export is written to ``W/export/<weights>`` when absent) with the same decoding and
 post-processing. Errors end with ``error: <file>: <problem>`` and exit code 2.
+
+Video files, cameras and image sequences (``--video FILE``, ``--camera INDEX``, ``--sequence
+DIR``, ``--clip [N]``) instead of ``IMAGE_OR_DIR`` run as a stream: an annotated video and
+per-frame results, written as frames finish (:mod:`gac_jax.cli.predict_stream`).
 """
 
 from __future__ import annotations
@@ -144,6 +148,7 @@ class ImageSource:
 
 def build_parser() -> argparse.ArgumentParser:
     from gac_jax.cli.model_mode import PRECISION_CHOICES
+    from gac_jax.cli.predict_stream import add_stream_arguments
     from gac_jax.deploy.int8 import add_int8_arguments
 
     parser = argparse.ArgumentParser(
@@ -151,7 +156,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run a trained GAC detector on KITTI-format images; write KITTI result files "
         "and pictures.",
     )
-    parser.add_argument("input", metavar="IMAGE_OR_DIR", help="an image or a folder of images")
+    parser.add_argument(
+        "input", metavar="IMAGE_OR_DIR", nargs="?", help="an image or a folder of images"
+    )
     parser.add_argument("--workdir", required=True, help="training workdir (or priors + config)")
     parser.add_argument("--calib", metavar="FILE_OR_DIR", help="calibration file or folder")
     parser.add_argument("--out", metavar="DIR", help="output folder (default: W/predict/<input>)")
@@ -159,7 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--step", type=int, help="checkpoint step (default: the latest)")
     parser.add_argument("--checkpoint", metavar="DIR", help="converted weights instead")
     parser.add_argument("--config", help="config file[:arg] instead of W/config.json")
-    parser.add_argument("--camera", type=int, choices=(2, 3), default=2, help="P2 or P3")
+    parser.add_argument(
+        "--calib-camera", type=int, choices=(2, 3), default=2, help="P2 or P3 of the calibration"
+    )
     parser.add_argument("--score-threshold", type=float, help="default: the config's")
     parser.add_argument("--batch-size", type=int, default=1, help="images per model call")
     parser.add_argument("--threads", type=int, help="CPU threads of XLA (default: all usable)")
@@ -174,6 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--export", metavar="DIR", help="export folder for --runtime (default: W/export/<weights>)"
     )
     add_int8_arguments(parser)
+    add_stream_arguments(parser)
     return parser
 
 
@@ -201,7 +211,7 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
         workdir, config, step=args.step, checkpoint=args.checkpoint, dtype=dtype
     )
     d = config.data
-    source = ImageSource(images, calibs, args.camera, (d.crop_top, d.height, d.width))
+    source = ImageSource(images, calibs, args.calib_camera, (d.crop_top, d.height, d.width))
     evaluator = evaluator_for(detector, source, args.batch_size)
     name = Path(args.input).resolve()
     out = Path(args.out) if args.out else workdir / "predict" / (name.stem or "input")
@@ -248,6 +258,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     apply_default_xla_flags()  # before JAX starts its backend
     parser = build_parser()
     args = parser.parse_args(argv)
+    from gac_jax.cli.predict_stream import check_stream_arguments, run_stream, stream_kind
+
+    check_stream_arguments(parser, args)
     if args.checkpoint and args.step is not None:
         parser.error("--step selects a checkpoint of the workdir; it cannot go with --checkpoint")
     if args.batch_size < 1:
@@ -267,18 +280,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.int8 = int8_settings(args)
     except ValueError as e:
         parser.error(str(e))
+    from gac_jax.api.inputs import InputError
     from gac_jax.data.io_errors import error_line, exit_code
     from gac_jax.training import workdir_lock
 
+    streaming = stream_kind(args) is not None
+    # W/predict by default; the runtimes export into W/export
+    outputs = [args.out] if args.runtime == "jax" or args.export else [args.out, None]
+    if streaming and args.out_video:
+        outputs.append(args.out_video)
     try:
-        with workdir_lock.hold_if_inside(args.workdir, args.out):  # W/predict by default
+        with workdir_lock.hold_if_inside(args.workdir, *outputs):
+            if streaming:
+                return run_stream(args, threads)
             predict(args, threads)
-    except (KittiFormatError, workdir_lock.WorkdirBusyError) as e:
+    except (KittiFormatError, InputError, workdir_lock.WorkdirBusyError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_INVALID_INPUT
     except OSError as e:
         print(f"error: {error_line(e, args.out or args.workdir)}", file=sys.stderr)
         return exit_code(e)
+    except KeyboardInterrupt:  # before a stream's frames (they handle Ctrl-C themselves)
+        print("interrupted", file=sys.stderr)
+        return 130
     return 0
 
 

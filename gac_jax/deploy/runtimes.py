@@ -36,6 +36,15 @@ from gac_jax.geometry import DEFAULT_CAMERA_HEIGHT, level_plane
 
 RUNTIMES = ("jax", "onnxruntime", "openvino")
 PRECISIONS = ("f32", "bf16", "int8")
+# every runtime/precision pair there is (check_runtime says which of them run on this machine)
+RUNTIME_PRECISIONS = (
+    ("jax", "f32"),
+    ("jax", "bf16"),
+    ("onnxruntime", "f32"),
+    ("openvino", "f32"),
+    ("openvino", "bf16"),
+    ("openvino", "int8"),
+)
 DETECTOR_OUTPUTS = ("cls_logits", "sign_logits", "reg")
 DEPTH_OUTPUTS = ("log_depth",)
 INPUTS = ("images", "P2", "plane")

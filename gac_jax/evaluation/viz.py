@@ -278,6 +278,13 @@ class BevGrid:
 
 
 def _bev_background(grid: BevGrid, background: Color, line: Color) -> np.ndarray:
+    """A fresh copy of the grid picture (drawn once per grid and colours: a video's frames
+    share it)."""
+    return _bev_background_cached(grid, tuple(background), tuple(line)).copy()
+
+
+@functools.lru_cache(maxsize=8)
+def _bev_background_cached(grid: BevGrid, background: Color, line: Color) -> np.ndarray:
     h, w = grid.size
     canvas = np.empty((h, w, 3), np.uint8)
     canvas[:] = background
@@ -297,6 +304,7 @@ def _bev_background(grid: BevGrid, background: Color, line: Color) -> np.ndarray
     cv2.fillPoly(
         canvas, [np.round(tri * (1 << _SHIFT)).astype(np.int32)], line, cv2.LINE_AA, _SHIFT
     )
+    canvas.flags.writeable = False  # shared by every caller: they draw on copies
     return canvas
 
 

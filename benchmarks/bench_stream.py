@@ -1,0 +1,300 @@
+"""The stream path end to end: video file in -> annotated video + result files out (CPU).
+
+For the default detector (configs/detect3d_default.py: ResNet-18/2 at 160x720) and the paper
+detector (configs/detect3d_kitti.py: ResNet-101 at 288x1280), per runtime and precision that
+runs on this machine (jax f32/bf16, onnxruntime f32, openvino f32/bf16/int8), a KITTI-size
+(1242x375) MPEG-4 video of the vendored real KITTI frames (tests/data/kitti) goes through the
+stream pipeline of ``python -m gac_jax.cli.predict --video``
+(:class:`gac_jax.streams.pipeline.StreamPipeline`): decode, test transform, network,
+decoding + NMS + hill-climbing, drawing the 3D boxes and the bird's-eye view, MPEG-4
+encoding of the annotated frame and the KITTI result file, the five stages overlapping on
+threads. Weights are random (timing only; score threshold 0 and ``top_k`` 100 as in
+bench_runtimes.py: 100 candidates per frame through NMS and hill-climbing, a crowded frame).
+
+Reported per row: sustained frames/s (frames written / wall time from the first frame's read
+to the last frame's write; the median over ``--rounds``), per-frame latency (decode start
+to written; median and p95 over the frames of every round) and the milliseconds each stage
+works per frame (stages overlap: the slowest one sets the rate) and the process CPU time per
+frame (all threads: what the stream costs the machine, less sensitive to other load than the
+wall-clock figures), plus the machine and its load. Export, int8 calibration and the first
+(compiling) frame are outside the timing.
+
+    python benchmarks/bench_stream.py [--configs default,paper] [--frames 120]
+        [--paper-frames 20] [--rounds 2] [--only 'jax f32,openvino int8'] [--batch-size 1]
+        [--threads N] [--workdir W] [--live FPS] [--json OUT]
+
+``--workdir W`` adds rows of a trained detector (W's checkpoint and config: its score
+threshold, so the post-processing sees what that detector keeps; copy a run folder first,
+the runtimes export into it). ``--live FPS`` adds one pass per row paced as a camera at FPS
+(``--realtime``: the newest frame kept): the frames dropped and the latency of a live stream.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from machine_info import describe_machine, one_line  # benchmarks/ is on sys.path
+from random_weights import random_variables, timing_detector_config
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+from gac_jax.cpu_backend import apply_default_xla_flags  # noqa: E402
+
+apply_default_xla_flags()
+
+KITTI = REPO / "tests" / "data" / "kitti" / "object"  # the vendored real frames (split labeled)
+CONFIGS = {
+    "default": "configs/detect3d_default.py",
+    "paper": "configs/detect3d_kitti.py",
+    "tiny": "configs/detect3d_default.py:tiny",  # a check of the script, not a result
+}
+FRAME_SIZE = (375, 1242)  # KITTI's
+
+
+def make_video(path: Path, frames: int) -> tuple[Path, Path]:
+    """An MPEG-4 video of the KITTI sample frames (cropped/resized to 1242x375, cycled) and
+    the calibration of its first frame."""
+    import cv2
+
+    from gac_jax.data.files import read_image
+
+    images = sorted((KITTI / "training" / "image_2").glob("*.png"))
+    h, w = FRAME_SIZE
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (w, h))
+    for i in range(frames):
+        image = read_image(images[i % len(images)])[:h, :w]
+        if image.shape[:2] != (h, w):
+            image = cv2.resize(image, (w, h), interpolation=cv2.INTER_LINEAR)
+        writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    writer.release()
+    return path, KITTI / "training" / "calib" / f"{images[0].stem}.txt"
+
+
+def random_detector(name: str, tmp: Path):
+    """A :class:`LoadedDetector` of config ``name`` with random weights (priors from the
+    KITTI samples)."""
+    from gac_jax.builders import detect3d as builders
+    from gac_jax.detection.anchor_priors import make_detection_constants
+    from gac_jax.detection.anchors import generate_anchors
+    from gac_jax.trained.detector import LoadedDetector
+
+    config = timing_detector_config(str(REPO / CONFIGS[name]), KITTI)
+    layout = builders.anchor_layout(config)
+    model = builders.build_model(config, layout.anchors_per_cell)
+    variables = random_variables(model, config, builders.init_variables)
+    priors = builders.compute_priors(config, KITTI, layout, tmp / f"priors_{name}")
+    constants = make_detection_constants(
+        generate_anchors(layout), priors, builders.sign_axis(config)
+    )
+    return LoadedDetector(config, model, constants, variables, "random weights", f"random_{name}")
+
+
+def run_stream(
+    detector, video: Path, calib: Path, out: Path, batch_size: int, live_fps: float | None = None
+) -> dict:
+    """One pass of the stream pipeline over ``video`` (``live_fps``: paced as a camera at that
+    rate, newest frame kept, as ``--realtime``); returns its rates and latencies."""
+    from gac_jax.streams import outputs, sources
+    from gac_jax.streams.pipeline import StreamPipeline
+
+    source = sources.VideoSource(video, sources.load_projection(calib), str(calib))
+    annotated = outputs.AnnotatedVideo(out / "annotated.mp4", source.fps)
+    results = outputs.KittiResults(out / "data")
+    if live_fps:
+        source = sources.PacedSource(source, live_fps)
+    pipeline = StreamPipeline(
+        source,
+        detector,
+        annotated,
+        results,
+        batch_size=1 if live_fps else batch_size,
+        realtime=bool(live_fps),
+        report_every=0,
+    )
+    cpu0 = time.process_time()
+    try:
+        report = pipeline.run()
+    finally:
+        annotated.close()
+        source.close()
+    cpu_s = time.process_time() - cpu0
+    if report.error is not None:
+        raise report.error
+    latencies = pipeline.rates.latencies().tolist()
+    return {
+        "fps": report.rates["fps"],
+        "latencies": latencies,
+        "frames": report.written,
+        "delivered": report.delivered,
+        "dropped": report.dropped_live,
+        "stage_ms": report.stage_ms,
+        "stage_cpu_ms": pipeline.stage_ms(cpu=True),
+        "cpu_ms_per_frame": 1e3 * cpu_s / max(report.written, 1),
+    }
+
+
+def with_dtype(loaded, runtime: str, precision: str):
+    """``loaded`` with the compute dtype of ``runtime``/``precision`` (jax bf16: bfloat16)."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    if (runtime, precision) != ("jax", "bf16"):
+        return loaded
+    return dataclasses.replace(loaded, model=loaded.model.clone(dtype=jnp.bfloat16))
+
+
+def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
+    """``args.rounds`` passes of the stream over ``video``: medians of frames/s, stage times
+    and CPU per frame; latency median and p95 over every round's frames."""
+    import numpy as np
+
+    from gac_jax.streams.rates import percentile_ms
+
+    t0 = time.perf_counter()
+    results = [
+        run_stream(detector, video, calib, out / str(r), args.batch_size)
+        for r in range(args.rounds)
+    ]
+    latencies = [x for r in results for x in r["latencies"]]
+
+    def median_of(key):
+        return {k: float(np.median([r[key][k] for r in results])) for k in results[0][key]}
+
+    row = {
+        "rounds": args.rounds,
+        "fps_median": float(np.median([r["fps"] for r in results])),
+        "fps_rounds": [r["fps"] for r in results],
+        "latency_median_ms": percentile_ms(latencies, 50),
+        "latency_p95_ms": percentile_ms(latencies, 95),
+        "stage_ms": median_of("stage_ms"),
+        "stage_cpu_ms": median_of("stage_cpu_ms"),
+        "cpu_ms_per_frame": float(np.median([r["cpu_ms_per_frame"] for r in results])),
+        "frames_written": [r["frames"] for r in results],
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+    }
+    if args.live:  # one pass paced as a camera: what a live stream keeps and its latency
+        live = run_stream(detector, video, calib, out / "live", 1, args.live)
+        row["live"] = {
+            "fps": args.live,
+            "delivered": live["delivered"],
+            "dropped": live["dropped"],
+            "latency_median_ms": percentile_ms(live["latencies"], 50),
+            "latency_p95_ms": percentile_ms(live["latencies"], 95),
+        }
+    row["wall_s"] = time.perf_counter() - t0
+    return row
+
+
+def print_row(label: str, row: dict) -> None:
+    rounds = ", ".join(f"{f:.2f}" for f in row["fps_rounds"])
+    print(
+        f"  {label:17s} {row['fps_median']:6.2f} frames/s  latency median "
+        f"{row['latency_median_ms']:7.0f} ms  p95 {row['latency_p95_ms']:7.0f} ms  "
+        f"(rounds {rounds}; set-up {row['setup_s']:.0f} s; load {row['load_avg_1min']})",
+        flush=True,
+    )
+    busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_ms"].items())
+    print(f"    ms per frame, each stage (overlapping): {busy}")
+    busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_cpu_ms"].items())
+    print(f"    CPU ms per frame of each stage's thread: {busy}")
+    print(f"    process CPU {row['cpu_ms_per_frame']:.0f} ms per frame (all threads)", flush=True)
+    if "live" in row:
+        live = row["live"]
+        print(
+            f"    live at {live['fps']:g} frames/s (--realtime): {live['dropped']} of "
+            f"{live['delivered']} frames dropped, latency median {live['latency_median_ms']:.0f} "
+            f"ms, p95 {live['latency_p95_ms']:.0f} ms",
+            flush=True,
+        )
+
+
+def main() -> None:
+
+    from gac_jax.api.detector import Detector3D
+    from gac_jax.deploy.runtimes import RUNTIME_PRECISIONS, check_runtime, cpu_flags
+    from gac_jax.streams import sources
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--configs", default="default,paper")
+    p.add_argument("--frames", type=int, default=120, help="video frames (default detector)")
+    p.add_argument("--paper-frames", type=int, default=20, help="video frames (paper detector)")
+    p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--only", help="rows to run, e.g. 'jax f32,openvino int8' (default: all)")
+    p.add_argument("--batch-size", type=int, default=1)
+    p.add_argument("--threads", type=int, help="ONNX Runtime / OpenVINO threads")
+    p.add_argument(
+        "--workdir", help="also a trained detector's run folder (its weights and config)"
+    )
+    p.add_argument(
+        "--live", type=float, metavar="FPS", help="also one pass paced as a camera at FPS"
+    )
+    p.add_argument("--json", type=Path)
+    args = p.parse_args()
+
+    sources.quiet_video_backend()
+    info = describe_machine("jax", "onnxruntime", "openvino", "cv2")
+    flags = cpu_flags()
+    print(one_line(info))
+    print(
+        f"CPU flags: AMX-BF16 {flags['amx_bf16']}, AMX-INT8 {flags['amx_int8']}, "
+        f"AVX512_BF16 {flags['avx512_bf16']}"
+    )
+    combos = [c for c in RUNTIME_PRECISIONS if not args.only or " ".join(c) in args.only.split(",")]
+    names = [n for n in args.configs.split(",") if n]
+    if args.workdir is not None:
+        names.append("trained")
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_stream_") as tmp:
+        tmp = Path(tmp)
+        for name in names:
+            n = args.paper_frames if name == "paper" else args.frames
+            video, calib = make_video(tmp / f"input_{n}.mp4", n)
+            what = f"{args.workdir}, its config" if name == "trained" else CONFIGS[name]
+            print(f"\n=== {name} detector ({what}), {n}-frame 1242x375 MPEG-4 video ===")
+            loaded = random_detector(name, tmp) if name != "trained" else None
+            for runtime, precision in combos:
+                label = f"{runtime} {precision}"
+                try:
+                    check_runtime(runtime, precision)
+                except Exception as e:  # noqa: BLE001 - reported, not timed
+                    print(f"  skip {label}: {e}", flush=True)
+                    continue
+                t0 = time.perf_counter()
+                model = {
+                    "runtime": runtime,
+                    "precision": precision,
+                    "threads": args.threads if runtime != "jax" else None,
+                    "batch_size": args.batch_size,
+                }
+                if loaded is None:
+                    detector = Detector3D.from_workdir(args.workdir, **model)
+                else:
+                    detector = Detector3D(
+                        with_dtype(loaded, runtime, precision), tmp / f"workdir_{name}", **model
+                    )
+                detector.warmup()
+                row = {"config": name, "runtime": runtime, "precision": precision, "frames": n}
+                row.update(measure(detector, video, calib, tmp / f"out_{name}_{label}", args))
+                row["setup_s"] = time.perf_counter() - t0 - row.pop("wall_s")
+                rows.append(row)
+                print_row(label, row)
+            best = max((r for r in rows if r["config"] == name), key=lambda r: r["fps_median"])
+            print(
+                f"  fastest: {best['runtime']} {best['precision']} {best['fps_median']:.1f} "
+                "frames/s end to end"
+            )
+    info["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
+    print(f"\nload average (1 min) at the end: {info['load_avg_1min_end']}")
+    if args.json:
+        args.json.write_text(json.dumps({"machine": info, "cpu_flags": flags, "rows": rows}))
+
+
+if __name__ == "__main__":
+    main()

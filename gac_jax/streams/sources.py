@@ -1,0 +1,337 @@
+"""Frame sources of a stream: a video file, a camera, an image sequence (KITTI tracking layout).
+
+Every source gives :class:`Frame` objects in order from :meth:`read` (``None`` at the end),
+each with its calibration ``P2`` and ground plane, and checks the calibration against the
+first frame's size before anything else runs, so a wrong input fails in a second with one
+line (:class:`~gac_jax.data.files.KittiFormatError`, ``<input>: <problem>``).
+
+* :class:`VideoSource`: any container OpenCV reads; fps from the file; a file that ends before
+  the frame count of its header is reported by :meth:`VideoSource.check_complete`.
+* :class:`CameraSource`: a ``cv2.VideoCapture`` device (``live``: frames come at the camera's
+  pace whether or not they are taken).
+* :class:`SequenceSource`: a folder of images, sorted by name; in the KITTI tracking layout
+  (``ROOT/training/image_02/SSSS/NNNNNN.png``) the calibration ``ROOT/training/calib/SSSS.txt``
+  and the per-frame planes ``ROOT/training/planes/SSSS/NNNNNN.txt`` are found by themselves.
+* :class:`PacedSource`: another source delivered at a fixed rate, as a camera would (a
+  recording replayed live: ``--realtime`` on a file).
+
+Images are RGB uint8 ``(H, W, 3)``; ``P2`` (3, 4) projects camera coordinates (x right,
+y down, z forward) to pixels (u right, v down); a plane is ``(a, b, c, d)`` in the camera
+frame, ``None`` for the detector's level camera.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from gac_jax.data.files import KittiFormatError, read_image
+from gac_jax.data.kitti import read_calib, read_plane
+from gac_jax.data.kitti_tracking import KittiTrackingLayout
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+CENTRE_BAND = 0.6  # the principal point must lie in the middle 60 % of each image axis
+
+
+def quiet_video_backend() -> None:
+    """Keeps OpenCV's and FFmpeg's own messages (``moov atom not found``, ``can't open camera
+    by index``) off stderr: the caller reports a failure as one line. FFmpeg reads its setting
+    when it first opens a file, so call this before any video is opened."""
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "OFF")
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+
+@dataclasses.dataclass
+class Frame:
+    """One frame of a stream.
+
+    Attributes:
+      index: position in the stream (0, 1, ...; frames a live source dropped count too).
+      frame_id: name of the frame's results (``NNNNNN`` or the image's stem).
+      image: (H, W, 3) uint8 RGB.
+      P2: (3, 4) float64 projection of the frame.
+      plane: (4,) ground plane in the camera frame; None: the detector's level camera.
+      t_read: ``time.perf_counter()`` when reading the frame began (latency starts here).
+    """
+
+    index: int
+    frame_id: str
+    image: np.ndarray
+    P2: np.ndarray
+    plane: np.ndarray | None
+    t_read: float
+
+
+def load_projection(path: str | os.PathLike, camera: int = 2) -> np.ndarray:
+    """(3, 4) ``P2`` (``camera`` 3: ``P3``) of a KITTI calibration file."""
+    calib = read_calib(path)
+    P = calib.P2 if camera == 2 else calib.P3
+    if P is None:
+        raise KittiFormatError(path, f"calibration has no P{camera}")
+    return np.asarray(P, np.float64)
+
+
+def check_calibration(P2: np.ndarray, size: tuple[int, int], calib: str, frames: str) -> None:
+    """Raises if ``P2`` cannot be the calibration of ``frames`` of ``size = (H, W)``.
+
+    The principal point ``(P2[0, 2], P2[1, 2])`` must lie in the frame, and in its middle
+    :data:`CENTRE_BAND` along each axis: a point near an edge means a calibration of another
+    image size (KITTI's 1242 x 375 one on a 640 x 480 camera puts it at u = 609 of 640).
+    """
+    h, w = size
+    cu, cv = float(P2[0, 2]), float(P2[1, 2])
+    where = f"the {w}x{h} frames of {frames}"
+    if not (0 <= cu <= w - 1 and 0 <= cv <= h - 1):
+        raise KittiFormatError(
+            calib,
+            f"does not fit {where}: P2's principal point ({cu:.1f}, {cv:.1f}) is outside "
+            "the frame (a calibration of another image size?)",
+        )
+    lo, hi = (1 - CENTRE_BAND) / 2, (1 + CENTRE_BAND) / 2
+    if not (lo * w <= cu <= hi * w and lo * h <= cv <= hi * h):
+        raise KittiFormatError(
+            calib,
+            f"does not fit {where}: P2's principal point ({cu:.1f}, {cv:.1f}) is far from "
+            f"the centre (expected within the middle {CENTRE_BAND:.0%} of each axis; a "
+            "calibration of another image size?)",
+        )
+
+
+def _check_size(image: np.ndarray, size: tuple[int, int], where: str, what: str) -> None:
+    if image.shape[:2] != size:
+        h, w = image.shape[:2]
+        raise KittiFormatError(
+            where,
+            f"frame is {w}x{h} but {what} {size[1]}x{size[0]} (one calibration per stream)",
+        )
+
+
+class VideoSource:
+    """Frames of a video file (``cv2.VideoCapture``), decoded in order.
+
+    Args:
+      path: the video (any container and codec OpenCV's FFmpeg reads).
+      P2: (3, 4) its calibration, read from ``calib`` (named in errors).
+      plane: (4,) ground plane of every frame, or None.
+    """
+
+    live = False
+
+    def __init__(self, path, P2: np.ndarray, calib: str, plane: np.ndarray | None = None):
+        self.name = os.fspath(path)
+        if not Path(path).is_file():
+            raise KittiFormatError(path, "video not found")
+        self._capture = cv2.VideoCapture(self.name)
+        if not self._capture.isOpened():
+            raise KittiFormatError(
+                path, "cannot be opened as a video (damaged, truncated or not a video file)"
+            )
+        fps = self._capture.get(cv2.CAP_PROP_FPS)
+        self.fps = fps if math.isfinite(fps) and fps > 0 else None
+        count = int(self._capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.expected_frames = count if count > 0 else None
+        self.P2, self.plane = np.asarray(P2, np.float64), plane
+        self.decoded = 0
+        t0 = time.perf_counter()
+        first = self._decode()
+        if first is None:
+            self.close()
+            raise KittiFormatError(path, "no frame could be decoded (damaged or truncated video)")
+        self.size = first.shape[:2]
+        check_calibration(self.P2, self.size, calib, self.name)
+        self._pending: tuple[np.ndarray, float] | None = (first, t0)
+
+    def _decode(self) -> np.ndarray | None:
+        ok, bgr = self._capture.read()
+        if not ok or bgr is None:
+            return None
+        self.decoded += 1
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    def read(self) -> Frame | None:
+        if self._pending is not None:
+            (image, t0), self._pending = self._pending, None
+        else:
+            t0 = time.perf_counter()
+            image = self._decode()
+            if image is None:
+                return None
+        i = self.decoded - 1
+        _check_size(image, self.size, f"{self.name} frame {i}", "the first frame is")
+        return Frame(i, f"{i:06d}", image, self.P2, self.plane, t0)
+
+    def check_complete(self) -> None:
+        """After the last frame: raises if fewer frames decoded than the header announced
+        (more than one short: some containers round their count)."""
+        if self.expected_frames is not None and self.decoded < self.expected_frames - 1:
+            raise KittiFormatError(
+                self.name,
+                f"video ends after {self.decoded} of its {self.expected_frames} frames "
+                f"(truncated or damaged); the results of those {self.decoded} frames are written",
+            )
+
+    def close(self) -> None:
+        self._capture.release()
+
+
+class CameraSource:
+    """Frames of a live camera (``cv2.VideoCapture(index)``).
+
+    Args:
+      index: the device index (``/dev/video<index>`` on Linux).
+      P2, calib, plane: as :class:`VideoSource`.
+    """
+
+    live = True
+    expected_frames = None
+
+    def __init__(self, index: int, P2: np.ndarray, calib: str, plane: np.ndarray | None = None):
+        self.name = f"camera {index}"
+        self._capture = cv2.VideoCapture(index)
+        if not self._capture.isOpened():
+            raise KittiFormatError(
+                self.name, "could not be opened (no such device, no permission, or in use)"
+            )
+        fps = self._capture.get(cv2.CAP_PROP_FPS)
+        self.fps = fps if math.isfinite(fps) and fps > 0 else None
+        self.P2, self.plane = np.asarray(P2, np.float64), plane
+        self.index = 0
+        ok, bgr = self._capture.read()
+        if not ok or bgr is None:
+            self.close()
+            raise KittiFormatError(self.name, "opened but delivered no frame")
+        self.size = bgr.shape[:2]
+        check_calibration(self.P2, self.size, calib, self.name)
+
+    def read(self) -> Frame | None:
+        t0 = time.perf_counter()
+        ok, bgr = self._capture.read()
+        if not ok or bgr is None:
+            return None
+        image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        i, self.index = self.index, self.index + 1
+        _check_size(image, self.size, f"{self.name} frame {i}", "the first frame is")
+        return Frame(i, f"{i:06d}", image, self.P2, self.plane, t0)
+
+    def check_complete(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self._capture.release()
+
+
+def sequence_images(folder: Path) -> list[Path]:
+    """The images (PNG/JPEG) of ``folder``, sorted by name."""
+    if not folder.is_dir():
+        raise KittiFormatError(folder, "sequence folder not found")
+    images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not images:
+        raise KittiFormatError(folder, f"no images ({', '.join(IMAGE_SUFFIXES)}) in this folder")
+    return images
+
+
+def sequence_files(folder: Path) -> tuple[Path | None, Path | None]:
+    """``(calibration, planes folder)`` of an image sequence folder: in the KITTI tracking
+    layout (``folder`` = ``ROOT/training/image_02/SSSS``) ``ROOT/training/calib/SSSS.txt`` and
+    ``ROOT/training/planes/SSSS``; else ``folder/calib.txt`` (if present) and no planes."""
+    located = KittiTrackingLayout.locate(folder)
+    if located is not None:
+        layout, sequence = located
+        return layout.calib(sequence), layout.plane(sequence, 0).parent
+    return (folder / "calib.txt" if (folder / "calib.txt").is_file() else None), None
+
+
+class SequenceSource:
+    """An image folder read as an ordered sequence (frame ids: the images' stems).
+
+    Args:
+      folder: the images (sorted by name).
+      calib: its calibration file; None: :func:`tracking_calibration`.
+      plane: one ground plane for every frame; None: the tracking layout's per-frame
+        ``ROOT/training/planes/SSSS/<stem>.txt`` where present, else the level camera.
+      camera: 2 (``P2``) or 3 (``P3``) of the calibration.
+      fps: the rate of the annotated video (KITTI records at 10 Hz).
+    """
+
+    live = False
+
+    def __init__(self, folder, calib=None, plane=None, camera: int = 2, fps: float = 10.0):
+        folder = Path(folder)
+        self.name = os.fspath(folder)
+        self.images = sequence_images(folder)
+        self.expected_frames = len(self.images)
+        layout_calib, self.planes_dir = sequence_files(folder)
+        if calib is None:
+            calib = layout_calib
+            if calib is None:
+                raise KittiFormatError(
+                    folder,
+                    "no calibration found (not in the KITTI tracking layout "
+                    f"ROOT/training/image_02/SSSS, no {folder / 'calib.txt'}); pass --calib FILE",
+                )
+        self.P2 = load_projection(calib, camera)
+        self.plane = plane
+        self.fps = fps
+        self.index = 0
+        self.size = read_image(self.images[0]).shape[:2]
+        check_calibration(self.P2, self.size, os.fspath(calib), self.name)
+
+    def frame_plane(self, image: Path) -> np.ndarray | None:
+        if self.plane is not None or self.planes_dir is None:
+            return self.plane
+        path = self.planes_dir / f"{image.stem}.txt"
+        return read_plane(path) if path.is_file() else None
+
+    def read(self) -> Frame | None:
+        if self.index >= len(self.images):
+            return None
+        t0 = time.perf_counter()
+        i, self.index = self.index, self.index + 1
+        path = self.images[i]
+        image = read_image(path)
+        _check_size(image, self.size, os.fspath(path), "the first image of the sequence is")
+        return Frame(i, path.stem, image, self.P2, self.frame_plane(path), t0)
+
+    def check_complete(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class PacedSource:
+    """``source`` delivered at ``fps`` frames/s, as a live camera would: frame ``i`` is not
+    read before ``start + i / fps`` (and is late when the reader is)."""
+
+    live = True
+
+    def __init__(self, source, fps: float):
+        if not fps > 0:
+            raise ValueError(f"fps must be > 0, got {fps}")
+        self.source, self.fps = source, fps
+        self.name, self.size = source.name, source.size
+        self.expected_frames = source.expected_frames
+        self._start: float | None = None
+        self._next = 0
+
+    def read(self) -> Frame | None:
+        if self._start is None:
+            self._start = time.perf_counter()
+        delay = self._start + self._next / self.fps - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+        self._next += 1
+        return self.source.read()
+
+    def check_complete(self) -> None:
+        self.source.check_complete()
+
+    def close(self) -> None:
+        self.source.close()
