@@ -105,6 +105,19 @@ def test_evaluate_says_which_precision_and_what_the_guard_decided(guarded, capsy
     assert "not guarded for these weights" in capsys.readouterr().out
 
 
+def test_the_api_says_what_the_guard_decided(guarded):
+    from gac_jax import Detector3D
+
+    wd, _ = guarded
+    settings = int8.Int8Settings(frames=int(FRAMES), keep_heading=True)
+    det = Detector3D.from_workdir(wd, runtime="openvino", precision="int8", int8=settings)
+    line = det.precision_line()
+    assert "precision: openvino int8 (heading kept in float32); guard: undecided on 4" in line
+    other = int8.Int8Settings(frames=2, keep_heading=True)  # not the guarded int8 model
+    line = Detector3D.from_workdir(wd, runtime="openvino", precision="int8", int8=other)
+    assert "not guarded for these weights" in line.precision_line()
+
+
 def test_bad_candidates_are_one_line(capsys, tmp_path):
     for text, words in (
         ("openvino", "RUNTIME:PRECISION"),

@@ -36,6 +36,7 @@ def test_labeled_images_give_the_trainer_results(
     assert {p.name: p.read_text() for p in (out / "data").glob("*.txt")} == expected
     assert not (out / "pictures").exists()
     assert f"{len(expected)} images" in stdout
+    assert "precision: jax float32, the guard's reference" in stdout
 
 
 def test_unlabeled_frames_and_other_image_sizes(

@@ -114,6 +114,7 @@ def test_a_generated_clip_gives_the_image_predict_results(
     summary = [line for line in stdout.splitlines() if line.startswith("5 frames -> ")]
     assert len(summary) == 1 and "frames/s, latency median" in summary[0], stdout
     assert "per frame, each stage" in stdout and "network" in stdout
+    assert "precision: jax float32, the guard's reference" in stdout
 
 
 def test_a_video_file_gives_the_image_predict_results(

@@ -45,6 +45,7 @@ from gac_jax.api.inputs import (
 from gac_jax.api.stages import StagedModel, checked_prepared, padded_chunks
 from gac_jax.builders.detect3d import eval_transform, filter_options
 from gac_jax.config import ConfigError, apply_overrides
+from gac_jax.deploy.int8 import Int8Settings
 from gac_jax.detection.inference import candidates_to_objects, make_predict_fn
 from gac_jax.evaluation.detector_evaluator import InputArrays
 from gac_jax.trained.detector import LoadedDetector, load_detector, postprocess_config
@@ -94,10 +95,13 @@ class Detector3D(StagedModel):
         threads: int | None = None,
         batch_size: int = 1,
         export_dir: str | os.PathLike | None = None,
+        int8: Int8Settings | None = None,
     ):
         import time
 
         self._detector = detector
+        self._workdir, self._export_dir = Path(workdir), export_dir
+        self._int8 = int8 if precision == "int8" else None
         config = detector.config
         self.runtime, self.precision, self.batch_size = runtime, precision, batch_size
         self.input_size = (int(config.data.height), int(config.data.width))
@@ -129,6 +133,7 @@ class Detector3D(StagedModel):
                     batch_size,
                     export_dir=export_dir,
                     threads=threads,
+                    int8=self._int8,
                 )
             self._variables = None
         self.load_s = time.perf_counter() - t0
@@ -147,6 +152,7 @@ class Detector3D(StagedModel):
         batch_size: int = 1,
         *,
         export_dir: str | os.PathLike | None = None,
+        int8: Int8Settings | None = None,
     ) -> Detector3D:
         """The detector of a training workdir (``config.json``, ``anchor_priors.npz``,
         ``checkpoints/``) at checkpoint ``step`` (default: the latest).
@@ -160,6 +166,9 @@ class Detector3D(StagedModel):
           threads: CPU threads of ONNX Runtime / OpenVINO (default: every usable core).
           score_threshold: keep detections above it (default: the config's).
           batch_size: images per network call.
+          int8: how the int8 network is calibrated and which layers stay float32
+            (:class:`~gac_jax.deploy.int8.Int8Settings`, e.g. ``keep_heading=True``;
+            default settings if None).
 
         Raises:
           InputError: a missing workdir or step, a config / checkpoint that does not load, an
@@ -183,7 +192,7 @@ class Detector3D(StagedModel):
         except ValueError as e:  # KittiFormatError: a missing step or an unfitting checkpoint
             argument = "step" if step is not None and "no checkpoint step" in str(e) else "workdir"
             raise InputError(argument, str(e)) from None
-        return cls(detector, workdir, **options)
+        return cls(detector, workdir, **options, int8=int8)
 
     @classmethod
     def from_weights(
@@ -198,6 +207,7 @@ class Detector3D(StagedModel):
         *,
         workdir: str | os.PathLike | None = None,
         export_dir: str | os.PathLike | None = None,
+        int8: Int8Settings | None = None,
     ) -> Detector3D:
         """The detector of converted weights (``python -m gac_jax.weights.convert``: ``OUT``
         or ``OUT/checkpoints/<step>``) with ``config`` (a config spec ``file.py[:arg]``, or a
@@ -231,7 +241,7 @@ class Detector3D(StagedModel):
             detector = load_detector(
                 workdir, config, checkpoint=weights, dtype=_dtype(runtime, precision)
             )
-        return cls(detector, workdir, **options)
+        return cls(detector, workdir, **options, int8=int8)
 
     # ------------------------------------------------------------------ description
 
@@ -253,6 +263,17 @@ class Detector3D(StagedModel):
 
     def __repr__(self) -> str:
         return f"Detector3D({self.weights}; {', '.join(self.class_names)}; {self._describe()})"
+
+    def precision_line(self) -> str:
+        """Which precision runs and what the accuracy guard (``python -m gac_jax.cli.guard``)
+        decided for these weights and settings: the line ``evaluate.py`` and the predict CLI
+        print, e.g. ``precision: openvino int8; not guarded for these weights (...)``."""
+        from gac_jax.deploy.guard_verdict import precision_line
+
+        int8 = (self._int8 or Int8Settings()) if self.precision == "int8" else None
+        return precision_line(
+            self._workdir, self._detector, self.runtime, self.precision, int8, self._export_dir
+        )
 
     # ------------------------------------------------------------------ stages
 

@@ -192,6 +192,7 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     import jax.numpy as jnp
 
     from gac_jax.data.files import KittiFormatError
+    from gac_jax.deploy.guard_verdict import precision_line
     from gac_jax.deploy.runtime_choice import use_runtime
     from gac_jax.evaluation.detection_pictures import save_pictures
     from gac_jax.trained.detector import evaluator_for, load_detector
@@ -216,6 +217,7 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     name = Path(args.input).resolve()
     out = Path(args.out) if args.out else workdir / "predict" / (name.stem or "input")
     print(f"{detector.weights}: {len(images)} images -> {out}", flush=True)
+    int8 = getattr(args, "int8", None)
     if args.runtime == "jax":
         compile_s = evaluator.compile(detector.variables, (d.height, d.width))
     else:
@@ -227,8 +229,9 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
             args.precision,
             export_dir=args.export,
             threads=threads,
-            int8=getattr(args, "int8", None),
+            int8=int8,
         )
+    print(precision_line(workdir, detector, args.runtime, args.precision, int8, args.export))
     detections, timings = evaluator.predict_split(detector.variables, out / "data", resume=False)
     n = int(timings["num_frames"])
     total = timings["model_s"] + timings["postprocess_s"] + timings["io_s"]

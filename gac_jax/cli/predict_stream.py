@@ -175,6 +175,7 @@ def load_detector(args: argparse.Namespace):
         "score_threshold": args.score_threshold,
         "batch_size": args.batch_size,
         "export_dir": args.export,
+        "int8": getattr(args, "int8", None),
     }
     if args.checkpoint is not None:
         config = args.config or load_run_config(args.workdir)
@@ -247,6 +248,7 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
         fps = f"{source.fps:g} frames/s" if source.fps else "fps unknown"
         count = f", {source.expected_frames} frames" if source.expected_frames else ""
         print(f"{detector.weights}: {source.name} ({w}x{h}, {fps}{count}) -> {out}", flush=True)
+        print(detector.precision_line(), flush=True)
         print(f"warm-up (compile): {detector.warmup():.1f} s", flush=True)
         if args.realtime and not source.live:  # a recording replayed as a live camera
             source = sources.PacedSource(source, source.fps or DEFAULT_FPS)
