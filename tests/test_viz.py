@@ -10,7 +10,7 @@ from gac_jax import geometry
 from gac_jax.data.files import read_image
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.data.sources import KittiDepthSource, KittiObjectSource
-from gac_jax.evaluation import viz
+from gac_jax.evaluation import depth_pictures, viz
 
 # Largest gap between the projected 3D box and the labelled 2D box on the sample frames is
 # ~3 px for rigid objects and ~10 px for pedestrians (arms and legs stick out of the 3D box).
@@ -189,16 +189,16 @@ def test_image_grid_shape_and_placement():
 @pytest.mark.parametrize("scale", ["inverse", "log"])
 def test_depth_colours_monotonic_and_invalid_black(scale):
     depth = np.linspace(1.0, 80.0, 400)[None, :]
-    rgb = viz.colorize_depth(depth, scale=scale).astype(np.float64)[0]
+    rgb = depth_pictures.colorize_depth(depth, scale=scale).astype(np.float64)[0]
     luma = rgb @ [0.299, 0.587, 0.114]
     # OpenCV's 8-bit MAGMA table has one -0.06 luma step (index 49 -> 50): tolerate 0.1.
     assert np.all(np.diff(luma) <= 0.1), "brightness must not increase with depth"
-    octaves = viz.colorize_depth(np.array([[1.0, 2, 4, 8, 16, 32, 64]]), scale=scale)[0]
+    octaves = depth_pictures.colorize_depth(np.array([[1.0, 2, 4, 8, 16, 32, 64]]), scale=scale)[0]
     assert np.all(np.diff(octaves.astype(float) @ [0.299, 0.587, 0.114]) < 0)
     assert luma[0] > 200 and luma[-1] < 40
     assert np.all(rgb.sum(axis=1) > 0), "valid pixels are never black"
     bad = np.array([[0.0, -3.0, np.nan, np.inf, 5.0, 200.0, 0.5]])
-    out = viz.colorize_depth(bad, scale=scale)
+    out = depth_pictures.colorize_depth(bad, scale=scale)
     assert not out[0, :4].any()
     np.testing.assert_array_equal(out[0, 5], rgb[-1])  # beyond max_depth clamps to the far colour
     np.testing.assert_array_equal(out[0, 6], rgb[0])  # nearer than min_depth clamps to near
@@ -207,9 +207,9 @@ def test_depth_colours_monotonic_and_invalid_black(scale):
 def test_sparse_depth_dilation_nearest_wins():
     depth = np.zeros((12, 12))
     depth[5, 5], depth[5, 6] = 10.0, 20.0
-    out = viz.colorize_depth(depth, dilate=3)
-    c10 = viz.colorize_depth(np.array([[10.0]]))[0, 0]
-    c20 = viz.colorize_depth(np.array([[20.0]]))[0, 0]
+    out = depth_pictures.colorize_depth(depth, dilate=3)
+    c10 = depth_pictures.colorize_depth(np.array([[10.0]]))[0, 0]
+    c20 = depth_pictures.colorize_depth(np.array([[20.0]]))[0, 0]
     np.testing.assert_array_equal(out[4, 4], c10)
     np.testing.assert_array_equal(out[5, 6], c10)  # the 10 m point covers its neighbour
     np.testing.assert_array_equal(out[5, 7], c20)
@@ -222,12 +222,12 @@ def test_depth_panel_on_real_frame(kitti_samples, tmp_path):
     sample = src[0]
     image, gt = sample["image"], sample["depth"]
     prediction = geometry.ground_depth_map(image.shape[:2], sample["P2"])  # a flat road
-    panel = viz.depth_panel(image, prediction, gt)
+    panel = depth_pictures.depth_panel(image, prediction, gt)
     h, w = image.shape[:2]
     assert panel.shape == (3 * (h + 18) + 4 * 4, w + 8, 3)
     top = 3 * 4 + 2 * (h + 18) + 18
     gt_pic = panel[top : top + h, 4 : 4 + w]
-    np.testing.assert_array_equal(gt_pic, viz.colorize_depth(gt, dilate=3))
+    np.testing.assert_array_equal(gt_pic, depth_pictures.colorize_depth(gt, dilate=3))
     coverage = gt_pic.any(axis=2).mean()
     assert (gt > 0).mean() < coverage < 1.0  # dilated, yet the empty sky stays black
     pred_pic = panel[4 + 18 + h + 4 + 18 : 4 + 18 + h + 4 + 18 + h, 4 : 4 + w]
@@ -239,7 +239,7 @@ def test_depth_panel_on_real_frame(kitti_samples, tmp_path):
     viz.save_image(tmp_path / "depth_panel.png", panel)
     # Smaller prediction (network resolution) is resized to the image.
     small = cv2.resize(prediction, (w // 4, h // 4), interpolation=cv2.INTER_NEAREST)
-    assert viz.depth_panel(image, small).shape == (2 * (h + 18) + 3 * 4, w + 8, 3)
+    assert depth_pictures.depth_panel(image, small).shape == (2 * (h + 18) + 3 * 4, w + 8, 3)
 
 
 def test_2d_boxes_trace_the_bbox_border():
