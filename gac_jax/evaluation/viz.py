@@ -1,4 +1,4 @@
-"""Pictures of detections and depth maps (OpenCV; RGB uint8 in, RGB uint8 out).
+"""Pictures of detections (OpenCV; RGB uint8 in, RGB uint8 out).
 
 * :func:`draw_detections` / :func:`draw_objects`: 3D boxes as projected
   wireframes (edges cut at the camera's near plane, then clipped to the image)
@@ -9,8 +9,8 @@
   right, z up the picture) with a metre grid, boxes as rotated rectangles and a
   heading mark from the centre to the front edge.
 * :func:`image_grid`: tiles of several pictures with captions.
-* :func:`colorize_depth` and :func:`depth_panel`: depth maps in a perceptual
-  colour map (near = bright), invalid pixels black.
+
+Depth maps: :mod:`gac_jax.evaluation.depth_pictures`.
 
 Nothing here writes files except :func:`save_image`.
 """
