@@ -74,6 +74,7 @@ class DepthPredictor(StagedModel):
 
         self.config, self.step = config, step
         self.runtime, self.precision, self.batch_size = runtime, precision, batch_size
+        self._export_dir = Path(export_dir or Path(workdir) / "export" / f"step{step}")
         self.input_size = (int(config.data.height), int(config.data.eval_width))
         self.min_image_rows = 1  # shorter images than the crop are padded on top
         self._transform = eval_transform(config)
@@ -118,6 +119,17 @@ class DepthPredictor(StagedModel):
 
     def __repr__(self) -> str:
         return f"DepthPredictor(step {self.step}; {self._describe()})"
+
+    def precision_line(self) -> str:
+        """Which precision runs and what the accuracy guard (``python -m gac_jax.cli.guard``)
+        decided for these weights: the line ``evaluate.py --task depth`` prints."""
+        from gac_jax.deploy.guard_verdict import describe_precision
+        from gac_jax.deploy.int8 import Int8Settings
+
+        int8 = Int8Settings() if self.precision == "int8" else None
+        return describe_precision(
+            self._export_dir, f"step{self.step}", self.runtime, self.precision, int8
+        )
 
     def prepare(self, image: np.ndarray, P2: Any, plane: Any = None) -> PreparedDepthImage:
         """Checks one image (arguments as :meth:`gac_jax.api.Detector3D.prepare`, any height)

@@ -26,6 +26,7 @@ from pathlib import Path
 
 from gac_jax.data import transforms
 from gac_jax.data.files import KittiFormatError, atomic_write
+from gac_jax.deploy.guard_verdict import describe_precision
 from gac_jax.deploy.int8 import Int8Settings, int8_settings
 from gac_jax.deploy.runtime_choice import resolve_runtime, run_suffix, runtime_predictor
 from gac_jax.evaluation.depth_baselines import RowMeanPredictor, fit_row_log_depth
@@ -72,11 +73,14 @@ def evaluate_workdir(
     precision: str = "f32",
     export_dir: str | Path | None = None,
     int8: Int8Settings | None = None,
+    max_batches: int | None = None,
 ) -> dict:
-    """Runs a trained depth model over a split; returns the evaluator's result dict.
+    """Runs a trained depth model over a split; returns the evaluator's result dict (with
+    each scored image's metrics in ``per_image``; ``metrics.json`` keeps the rest).
 
     ``runtime`` / ``precision``: see :func:`runtime_predictor`; a non-default pair adds
-    ``_<runtime>_<precision>`` to the default output folder.
+    ``_<runtime>_<precision>`` to the default output folder. ``max_batches``: only the first
+    batches of the split (None: all).
     """
     from gac_jax.builders import depth as builders
 
@@ -88,13 +92,16 @@ def evaluate_workdir(
     predictor = runtime_predictor(
         config, model, variables, step, workdir, runtime, precision, export_dir, int8
     )
-    result = evaluator.evaluate(predictor, out / "depth", out / "pictures")
+    guarded = Path(export_dir) if export_dir else Path(workdir) / "export" / f"step{step}"
+    int8_used = (int8 or Int8Settings()) if precision == "int8" else None
+    print(describe_precision(guarded, f"step{step}", runtime, precision, int8_used), flush=True)
+    result = evaluator.evaluate(predictor, out / "depth", out / "pictures", max_batches=max_batches)
     result["step"] = step
     result["runtime"] = {"runtime": runtime, "precision": precision} | (
         {"int8": dataclasses.asdict(int8 or Int8Settings())} if precision == "int8" else {}
     )
     with atomic_write(out / "metrics.json") as f:
-        json.dump(result, f, indent=2)
+        json.dump({k: v for k, v in result.items() if k != "per_image"}, f, indent=2)
     print(
         f"{result['num_frames']} frames, step {step} of {workdir}, predictions in {out / 'depth'}"
     )

@@ -1,4 +1,4 @@
-"""``python -m gac_jax.cli.guard``: decides whether a runtime/precision keeps a trained detector.
+"""``python -m gac_jax.cli.guard``: decides whether a runtime/precision keeps a trained model.
 
     python -m gac_jax.cli.guard --workdir W --candidates openvino:int8,openvino:bf16
         [--guard-data DIR [--split val]] [--frames N] [--step N] [--margin 0.5]
@@ -22,6 +22,9 @@ split ``--split`` (default ``val``), else the run's own val split; ``--frames N`
 first N (whole batches). Result files go to ``W/eval/guard_<data>_<split>/<candidate>/data``,
 one per frame as they are made; a rerun resumes them (a folder made with other settings is
 refused).
+
+A depth workdir (``python train.py --task depth``) gets the depth guard instead: the paired
+per-frame SILog difference, margin 0.2 (:mod:`gac_jax.cli.guard_depth`).
 """
 
 from __future__ import annotations
@@ -62,13 +65,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m gac_jax.cli.guard", description=__doc__.splitlines()[0]
     )
-    p.add_argument("--workdir", required=True, help="a trained detect3d workdir")
+    p.add_argument("--workdir", required=True, help="a trained detect3d or depth workdir")
     p.add_argument("--candidates", required=True, help=HELP_CANDIDATES)
     p.add_argument("--guard-data", type=Path, metavar="DIR", help="KITTI-format guard frames")
     p.add_argument("--split", help="split of the guard frames (default val)")
     p.add_argument("--frames", type=int, metavar="N", help="the first N frames (whole batches)")
     p.add_argument("--step", type=int, help="checkpoint step (default: the latest)")
-    p.add_argument("--margin", type=float, default=None, help="points of found-rate (0.5)")
+    p.add_argument(
+        "--margin", type=float, default=None, help="points of found-rate (0.5); depth: SILog (0.2)"
+    )
     p.add_argument("--alpha", type=float, default=None, help="error level (0.05)")
     p.add_argument("--heading-tolerance", type=float, default=None, help="degrees (30)")
     p.add_argument("--int8-frames", type=int, help="calibration frames (as evaluate.py)")
@@ -139,6 +144,7 @@ def _predict(workdir, config, step, source, runtime, precision, int8, out, threa
 def guard_workdir(args) -> dict:
     """The command as a function (module docstring); returns everything it prints."""
     from gac_jax.builders.datasets import prepare_dataset
+    from gac_jax.builders.depth import PRIOR_FILE
     from gac_jax.cli.model_mode import limit_cpu_threads
     from gac_jax.data.files import KittiFormatError
     from gac_jax.data.sources import open_object_source
@@ -158,6 +164,10 @@ def guard_workdir(args) -> dict:
     workdir = Path(args.workdir)
     if not (workdir / "config.json").is_file():
         raise KittiFormatError(workdir, "not a trained workdir (no config.json)")
+    if (workdir / PRIOR_FILE).is_file():  # a depth run
+        from gac_jax.cli.guard_depth import guard_depth_workdir
+
+        return guard_depth_workdir(args, candidates, lambda heading: _settings(args, heading))
     config = load_run_config(workdir, None, None, None)
     root = Path(args.guard_data) if args.guard_data else Path(prepare_dataset(config.data))
     split = args.split or ("val" if args.guard_data else config.data.val_split)

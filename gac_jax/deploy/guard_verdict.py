@@ -119,13 +119,25 @@ def precision_line(
     from gac_jax.deploy.runtime_choice import default_export_dir
 
     export_dir = export_dir or default_export_dir(workdir, detector)
+    return describe_precision(export_dir, detector.tag, runtime, precision, int8)
+
+
+def describe_precision(
+    export_dir: str | os.PathLike,
+    weights: str,
+    runtime: str,
+    precision: str,
+    int8: Int8Settings | None = None,
+) -> str:
+    """:func:`precision_line` for any exported model: ``export_dir`` (where its
+    ``guard.json`` lies) and ``weights`` (its tag, e.g. ``step875``)."""
     names = {"f32": "float32", "bf16": "bfloat16", "int8": "int8"}
     what = f"{runtime} {names.get(precision, precision)}"
     if int8 is not None and precision == "int8":
         what += " (heading kept in float32)" if int8.keep_heading else ""
     if runtime == "jax" and precision == "f32":
         return f"precision: {what}, the guard's reference"
-    status, entry = guard_status(export_dir, detector.tag, runtime, precision, int8)
+    status, entry = guard_status(export_dir, weights, runtime, precision, int8)
     if entry is None:
         return (
             f"precision: {what}; not guarded for these weights "

@@ -322,12 +322,15 @@ class DepthEvaluator:
           max_batches: stop after this many batches (None: the whole split).
         Returns:
           ``{'metrics': {name: value} ({} when nothing was scored), 'num_frames',
-          'num_predicted', 'num_scored', 'timings': {...}}``; frames without ground truth (or
-          with no valid GT pixel) are written but not scored.
+          'num_predicted', 'num_scored', 'timings': {...}, 'per_image': [{'frame', 'camera',
+          name: value, ...}]}`` (``per_image``: each scored image's metrics, in split order;
+          ``metrics`` is their mean); frames without ground truth (or with no valid GT pixel)
+          are written but not scored.
         """
         result_dir = Path(result_dir) if result_dir is not None else None
         picture_dir = Path(picture_dir) if picture_dir is not None else None
         acc = DepthMetricAccumulator()
+        per_image: list[dict[str, Any]] = []
         timings = {"load_s": 0.0, "model_s": 0.0, "write_s": 0.0, "score_s": 0.0}
         counts = {"num_frames": 0, "num_predicted": 0}
         steps = self.loader.steps_per_epoch
@@ -374,14 +377,22 @@ class DepthEvaluator:
                         f"truth {gt.shape} sizes differ"
                     )
                 if gt is not None and (gt > 0).any():
-                    acc.update(depth, gt)
+                    scored = acc.update(depth, gt)
+                    frame, camera = keys[b] if keys is not None else (str(index), 2)
+                    per_image.append({"frame": frame, "camera": camera, **scored})
                 if picture_dir is not None and int(index) in self.pictures:
                     self._draw(int(index), depth, gt, picture_dir, keys[b])
                 timings["write_s"] += t4 - t3
                 timings["score_s"] += time.perf_counter() - t4
                 counts["num_frames"] += 1
         metrics = acc.result() if acc.count else {}
-        return {"metrics": metrics, **counts, "num_scored": acc.count, "timings": timings}
+        return {
+            "metrics": metrics,
+            **counts,
+            "num_scored": acc.count,
+            "timings": timings,
+            "per_image": per_image,
+        }
 
     def _paths(self, result_dir, keys) -> list[Path] | None:
         if result_dir is None or keys is None:
