@@ -14,8 +14,8 @@ metrics of each run, the paired differences and the verdicts, and writes the ver
 
 Guard frames: ``--guard-data DIR``, a KITTI-depth root (``DIR/data_depth_annotated``) or a
 generated dataset (its ``depth/`` folder is used), split ``--split`` (default ``val``); else
-the run's own evaluation data. ``--frames N``: the first N frames (whole batches; every
-frame with the run's evaluation cameras). Depth maps go to
+the run's own evaluation data. ``--frames N``: the first N images (whole batches; a
+KITTI-depth split lists every left image before the right ones). Depth maps go to
 ``W/eval/guard_<data>_<split>_step<N>/<candidate>/depth``, one PNG per image as they are made;
 a rerun resumes them.
 """
@@ -57,13 +57,11 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
     if root is not None and not root.exists():
         raise KittiFormatError(root, "guard data folder not found")
     split = args.split or ("val" if root is not None else None)
-    cameras = tuple(config.data.val_cameras)
     max_batches = None
     if args.frames is not None:
         if args.frames < 1:
             raise KittiFormatError("--frames", f"must be at least 1, got {args.frames}")
-        batch = int(config.data.eval_batch_size)
-        max_batches = math.ceil(args.frames * len(cameras) / batch)
+        max_batches = math.ceil(args.frames / int(config.data.eval_batch_size))
     margin = paired_depth_guard.MARGIN if args.margin is None else args.margin
     alpha = paired_depth_guard.ALPHA if args.alpha is None else args.alpha
     data_name = root.resolve().name if root is not None else "own"
