@@ -449,3 +449,13 @@ def test_cli_end_to_end(tmp_path):
     assert again.returncode == 0 and "already there" in again.stdout
     bad = subprocess.run(cmd[:5] + ["--num", "-3"], capture_output=True, text=True, env=env)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr and "--num" in bad.stderr
+
+
+def test_a_view_without_road_surface_renders():
+    # frame 7589 of seed 4: a car close ahead in a narrow street hides every road pixel of the
+    # right view (its shading once failed on the empty pixel set)
+    frame = make_frame(4, 7589)
+    for cam in (2, 3):
+        view = frame.views[cam]
+        assert view.image.shape == (375, 1242, 3) and np.isfinite(view.depth).all()
+    assert not (frame.views[3].surface == render.GROUND).any()

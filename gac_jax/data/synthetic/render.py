@@ -248,6 +248,8 @@ class _Canvas:
 
     def shade_ground(self) -> None:
         rr, cc = np.nonzero(self.kind == GROUND)
+        if rr.size == 0:  # no road surface in view (a narrow street, a vehicle close ahead)
+            return
         cam, scene = self.cam, self.scene
         depth = 1.0 / self.zbuf[rr, cc]
         u, v = cc.astype(np.float32), rr.astype(np.float32)
