@@ -64,7 +64,7 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
         max_batches = math.ceil(args.frames / int(config.data.eval_batch_size))
     margin = paired_depth_guard.MARGIN if args.margin is None else args.margin
     alpha = paired_depth_guard.ALPHA if args.alpha is None else args.alpha
-    data_name = root.resolve().name if root is not None else "own"
+    data_name = Path(args.guard_data).resolve().name if root is not None else "own"
     base = workdir / "eval" / f"guard_{data_name}_{split or 'val'}_step{step}"
     export_dir = workdir / "export" / f"step{step}"
     runs = [("jax", "f32", False), *candidates]
