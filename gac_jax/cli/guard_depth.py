@@ -43,7 +43,8 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
     from gac_jax.data.files import KittiFormatError
     from gac_jax.deploy import guard_verdict
     from gac_jax.evaluation import paired_depth_guard
-    from gac_jax.trained.depth import restore_depth_model
+    from gac_jax.trained.depth import checkpoint_step
+    from gac_jax.trained.run_config import load_workdir_config
     from gac_jax.training import workdir_lock
 
     for runtime, precision, heading in candidates:
@@ -52,7 +53,8 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
                 f"{runtime}:{precision}+heading", "'+heading' applies to detectors only"
             )
     workdir = Path(args.workdir)
-    config, _, _, step = restore_depth_model(workdir, args.step)
+    config = load_workdir_config(workdir)
+    step = checkpoint_step(workdir, args.step)  # each run below restores the weights itself
     root = _depth_root(args.guard_data)
     if root is not None and not root.exists():
         raise KittiFormatError(root, "guard data folder not found")

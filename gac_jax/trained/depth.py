@@ -34,7 +34,23 @@ def restore_depth_model(workdir: str | Path, step: int | None = None):
     abstract = jax.eval_shape(
         lambda: TrainState.create(**builders.init_variables(model, config, 0), tx=tx, seed=0)
     )
+    step = checkpoint_step(workdir, step)
     with Checkpoints(workdir) as checkpoints:
+        state, meta = checkpoints.restore(abstract, step)
+    variables = jax.tree.map(
+        jax.device_get, {"params": state.params, "batch_stats": state.batch_stats}
+    )
+    return config, model, variables, int(meta["step"])
+
+
+def checkpoint_step(workdir: str | Path, step: int | None = None) -> int:
+    """The checkpoint ``step`` of a workdir (default: the latest), checked to exist; reads no
+    weights.
+
+    Raises:
+      KittiFormatError: no checkpoint, or none at ``step`` (listing those there are).
+    """
+    with Checkpoints(Path(workdir)) as checkpoints:
         available = checkpoints.all_steps()
         if not available or (step is not None and step not in available):
             raise KittiFormatError(
@@ -42,8 +58,4 @@ def restore_depth_model(workdir: str | Path, step: int | None = None):
                 f"no checkpoint {'at step ' + str(step) if step is not None else ''} "
                 f"(have {available})",
             )
-        state, meta = checkpoints.restore(abstract, step)
-    variables = jax.tree.map(
-        jax.device_get, {"params": state.params, "batch_stats": state.batch_stats}
-    )
-    return config, model, variables, int(meta["step"])
+    return step if step is not None else max(available)
