@@ -1,13 +1,12 @@
 """Multi-process training: 2 processes on localhost (CPU, gloo) through ``train.py``.
 
 The detection runs are the ``:tiny`` detector on the vendored real KITTI frames with a global
-batch of 4 and plain SGD (patched in by the worker below: the update is linear
-in the gradient, so parameters of different process counts compare to float
-tolerance; Adam's m / sqrt(v) turns float-noise gradients of near-unused
-weights into full-size steps). A persistent compilation cache shared by all
-launches and cheap XLA CPU optimisation settings keep their start-up short (JAX
-writes the cache from process 0 only, and process 1's keys differ on CPU, so
-process 1 compiles in every launch).
+batch of 4 and plain SGD (patched in by the worker below: the update is linear in the gradient,
+so parameters of different process counts compare to float tolerance; Adam's m / sqrt(v) turns
+float-noise gradients of near-unused weights into full-size steps). A persistent compilation
+cache shared by all launches and cheap XLA CPU optimisation settings keep their start-up short
+(JAX writes the cache from process 0 only, and process 1's keys differ on CPU, so process 1
+compiles in every launch).
 
 One test, in the order a user would meet these situations:
 
