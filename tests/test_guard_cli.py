@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
+import jax
 import pytest
 
 pytest.importorskip("onnx", reason="deploy extra (onnx) not installed")
@@ -129,3 +131,84 @@ def test_bad_candidates_are_one_line(capsys, tmp_path):
         assert info.value.code == 2 and words in capsys.readouterr().err
     assert guard.main(["--workdir", str(tmp_path), "--candidates", "openvino:f32"]) == 2
     assert "not a trained workdir" in capsys.readouterr().err
+
+
+def replace_checkpoint(workdir, step: int, seed: int) -> None:
+    """Model B at model A's step: the checkpoint ``step`` rewritten with other weights (every
+    parameter moved by seeded noise), as a run retrained with another seed leaves it."""
+    import numpy as np
+
+    from gac_jax.training.checkpointing import Checkpoints
+
+    rng = np.random.default_rng(seed)
+    with Checkpoints(workdir) as ckpts:
+        state, meta = ckpts.restore_local(step)
+    state["params"] = jax.tree.map(
+        lambda p: (p + 0.05 * rng.standard_normal(p.shape) * (np.std(p) + 1e-3)).astype(p.dtype),
+        state["params"],
+    )
+    shutil.rmtree(workdir / "checkpoints" / str(step))
+    with Checkpoints(workdir) as ckpts:
+        ckpts.save(step, state, meta)
+
+
+def test_retrained_weights_at_the_same_step_get_a_fresh_export_and_no_verdict(
+    guarded, tmp_path, capsys
+):
+    """The identity of an export, a verdict and a result folder is the weights' sha256, not
+    the step: model B at model A's step runs B's network in every runtime, is "not guarded",
+    and A's result files are not resumed for B."""
+    import numpy as np
+
+    from gac_jax import Detector3D
+    from gac_jax.trained.fingerprint import weights_sha256
+    from gac_jax.training.checkpointing import Checkpoints
+    from tests.test_api import labeled_frames
+
+    wd = tmp_path / "wd"
+    shutil.copytree(guarded[0], wd)
+    export = wd / "export" / "step2"
+    a = artifact.read_export(export)
+    assert (
+        evaluate_cli.main(["--task", "detect3d", "--workdir", str(wd), "--runtime", "onnxruntime"])
+        == 0
+    )
+    assert "guard: undecided on 4 frames" in capsys.readouterr().out
+
+    replace_checkpoint(wd, 2, seed=1)
+    with Checkpoints(wd) as ckpts:
+        b_sha = weights_sha256(ckpts.restore_variables(2))
+    assert b_sha != a["weights"]["sha256"]
+    det = Detector3D.from_workdir(wd, runtime="onnxruntime", threads=1)
+    out = capsys.readouterr().out
+    assert f"exporting again into {export}: the export there was made from other weights" in out
+    b = artifact.read_export(export)
+    assert b["weights"] == {"step": 2, "sha256": b_sha} and b["sha256"] != a["sha256"]
+    line = det.precision_line()
+    assert "not guarded for these weights: the verdicts are for other weights" in line
+    assert f"these are {b_sha[:12]}" in line
+    # ONNX Runtime runs model B: the detections of jax on B, to float32 rounding
+    root = Path(json.loads((wd / "config.json").read_text())["data"]["root"])
+    _, image, P2 = labeled_frames(root)[0]
+    ref, got = Detector3D.from_workdir(wd).predict(image, P2), det.predict(image, P2)
+    assert len(ref.scores) == len(got.scores) > 0
+    np.testing.assert_allclose(got.scores, ref.scores, atol=1e-3)
+    np.testing.assert_allclose(got.locations, ref.locations, atol=1e-2)
+    # the result folder of A's onnxruntime run starts again for B
+    assert (
+        evaluate_cli.main(["--task", "detect3d", "--workdir", str(wd), "--runtime", "onnxruntime"])
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert "starting" in out and "its results were made from other weights" in out
+    assert "(0 already done)" in out and "not guarded for these weights" in out
+
+
+def test_a_changed_score_threshold_is_not_guarded(guarded):
+    from gac_jax import Detector3D
+
+    det = Detector3D.from_workdir(guarded[0], runtime="onnxruntime", score_threshold=0.3)
+    line = det.precision_line()
+    assert (
+        "not guarded for these weights: guarded at score threshold 0.0, this run uses 0.3" in line
+    )

@@ -24,6 +24,8 @@ from gac_jax.data.files import KittiFormatError  # noqa: E402
 from gac_jax.deploy import runtimes  # noqa: E402
 from gac_jax.deploy.export import __main__ as export_cli  # noqa: E402
 from gac_jax.deploy.export import artifact  # noqa: E402
+from gac_jax.trained.fingerprint import weights_sha256  # noqa: E402
+from gac_jax.training.checkpointing import Checkpoints  # noqa: E402
 
 PRINTED = 0.01 + 1e-9  # result files print 2 decimals
 
@@ -81,7 +83,9 @@ def test_onnxruntime_writes_the_jax_result_files(onnx_run):
     for key, value in flatten(reference).items():
         np.testing.assert_allclose(flatten(metrics)[key], value, atol=0.02, err_msg=key)
     meta = json.loads((wd / "export" / "step2" / "export.json").read_text())
-    assert meta["weights"] == {"step": 2} and meta["task"] == "detect3d"
+    with Checkpoints(wd) as ckpts:  # the export is bound to the weights' contents
+        sha = weights_sha256(ckpts.restore_variables(2))
+    assert meta["weights"] == {"step": 2, "sha256": sha} and meta["task"] == "detect3d"
     assert meta["input_size"] == [64, 256] and meta["opset"] == artifact.DEFAULT_OPSET
 
 

@@ -35,6 +35,7 @@ from gac_jax.builders.depth import eval_transform
 from gac_jax.data.loader import collate
 from gac_jax.evaluation.depth_evaluator import NetworkPredictor
 from gac_jax.trained.depth import restore_depth_model
+from gac_jax.trained.fingerprint import weights_sha256
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,9 +80,18 @@ class DepthPredictor(StagedModel):
         self.min_image_rows = 1  # shorter images than the crop are padded on top
         self._transform = eval_transform(config)
         self._lock = threading.Lock()
+        self.weights_sha256 = weights_sha256(variables)
         with runtime_args.file_errors_as("workdir"):
             self._predictor = runtime_predictor(
-                config, model, variables, step, workdir, runtime, precision, export_dir
+                config,
+                model,
+                variables,
+                step,
+                workdir,
+                runtime,
+                precision,
+                export_dir,
+                weights_sha256=self.weights_sha256,
             )
         if isinstance(self._predictor, NetworkPredictor):  # weights on the device once
             self._predictor.variables = jax.device_put(self._predictor.variables)
@@ -128,7 +138,12 @@ class DepthPredictor(StagedModel):
 
         int8 = Int8Settings() if self.precision == "int8" else None
         return describe_precision(
-            self._export_dir, f"step{self.step}", self.runtime, self.precision, int8
+            self._export_dir,
+            f"step{self.step}",
+            self.runtime,
+            self.precision,
+            int8,
+            weights_sha256=self.weights_sha256,
         )
 
     def prepare(self, image: np.ndarray, P2: Any, plane: Any = None) -> PreparedDepthImage:

@@ -24,9 +24,10 @@ import dataclasses
 import json
 from pathlib import Path
 
+from gac_jax.cli.result_folder import check_resumable
 from gac_jax.data import transforms
 from gac_jax.data.files import KittiFormatError, atomic_write
-from gac_jax.deploy.guard_verdict import describe_precision
+from gac_jax.deploy.guard_verdict import describe_precision, network_identity
 from gac_jax.deploy.int8 import Int8Settings, int8_settings
 from gac_jax.deploy.runtime_choice import resolve_runtime, run_suffix, runtime_predictor
 from gac_jax.evaluation.depth_baselines import RowMeanPredictor, fit_row_log_depth
@@ -38,6 +39,7 @@ from gac_jax.evaluation.depth_evaluator import (
 )
 from gac_jax.evaluation.depth_metrics import format_depth_table
 from gac_jax.trained.depth import restore_depth_model
+from gac_jax.trained.fingerprint import weights_sha256
 from gac_jax.trained.run_config import load_workdir_config
 from gac_jax.training import workdir_lock
 
@@ -85,18 +87,38 @@ def evaluate_workdir(
     from gac_jax.builders import depth as builders
 
     config, model, variables, step = restore_depth_model(workdir, step)
+    sha = weights_sha256(variables)
     source = _data_source(config, data, split)
     name = f"step_{step}_{_tag(source, split)}{run_suffix(runtime, precision)}"
     out = Path(out) if out else Path(workdir) / "eval" / name
     evaluator = builders.make_evaluator(config, source)
     predictor = runtime_predictor(
-        config, model, variables, step, workdir, runtime, precision, export_dir, int8
+        config, model, variables, step, workdir, runtime, precision, export_dir, int8, sha
     )
     guarded = Path(export_dir) if export_dir else Path(workdir) / "export" / f"step{step}"
     int8_used = (int8 or Int8Settings()) if precision == "int8" else None
-    print(describe_precision(guarded, f"step{step}", runtime, precision, int8_used), flush=True)
+    settings = {
+        "weights": f"step{step}",
+        "weights_sha256": sha,
+        "data": str(Path(data).resolve()) if data else None,
+        "split": split,
+        "runtime": runtime,
+        "precision": precision,
+        "int8": dataclasses.asdict(int8_used) if int8_used else None,
+    }
+    if runtime != "jax":
+        settings["network"] = network_identity(guarded, runtime, precision, int8_used)
+    out.mkdir(parents=True, exist_ok=True)
+    check_resumable(out / "run.json", settings, out / "depth")
+    print(
+        describe_precision(
+            guarded, f"step{step}", runtime, precision, int8_used, weights_sha256=sha
+        ),
+        flush=True,
+    )
     result = evaluator.evaluate(predictor, out / "depth", out / "pictures", max_batches=max_batches)
     result["step"] = step
+    result["weights_sha256"] = sha
     result["runtime"] = {"runtime": runtime, "precision": precision} | (
         {"int8": dataclasses.asdict(int8 or Int8Settings())} if precision == "int8" else {}
     )

@@ -32,11 +32,17 @@ import numpy as np
 
 from gac_jax.builders.datasets import prepare_dataset
 from gac_jax.cli.model_mode import limit_cpu_threads, xla_thread_count
+from gac_jax.cli.result_folder import check_resumable
 from gac_jax.data.files import KittiFormatError, atomic_write
 from gac_jax.data.sources import open_object_source
-from gac_jax.deploy.guard_verdict import precision_line
+from gac_jax.deploy.guard_verdict import network_identity, precision_line
 from gac_jax.deploy.int8 import Int8Settings, int8_settings
-from gac_jax.deploy.runtime_choice import resolve_runtime, run_suffix, use_runtime
+from gac_jax.deploy.runtime_choice import (
+    default_export_dir,
+    resolve_runtime,
+    run_suffix,
+    use_runtime,
+)
 from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.kitti_object import format_table
 from gac_jax.trained.detector import LoadedDetector, evaluator_for, load_detector
@@ -55,13 +61,17 @@ def run_settings(
     runtime: str = "jax",
     precision: str = "f32",
     int8: Int8Settings | None = None,
+    network: dict | None = None,
 ) -> dict:
-    """What the result files of a run depend on (compared when resuming)."""
+    """What the result files of a run depend on (compared when resuming,
+    :func:`gac_jax.cli.result_folder.check_resumable`); ``network``: for an exported network
+    its :func:`gac_jax.deploy.guard_verdict.network_identity`."""
     c = detector.config
     return (
         {
             # the workdir's own checkpoints by step (the workdir may move), converted ones by path
             "weights": detector.tag if detector.step is not None else detector.weights,
+            "weights_sha256": detector.weights_sha256,
             "split": split,
             "data_root": str(Path(root).resolve()),
             "dtype": jnp.dtype(dtype).name,
@@ -73,27 +83,8 @@ def run_settings(
         }
         | ({"runtime": runtime, "precision": precision} if runtime != "jax" else {})
         | ({"int8": dataclasses.asdict(int8)} if precision == "int8" and int8 else {})
+        | ({"network": network} if network is not None else {})
     )
-
-
-def _check_resumable(path: Path, settings: dict) -> None:
-    """Refuses to add to result files made with other settings; records them otherwise."""
-    canonical = json.loads(json.dumps(settings, default=str))
-    if path.exists():
-        stored = json.loads(path.read_text())
-        if stored != canonical:
-            keys = sorted(
-                k for k in set(stored) | set(canonical) if stored.get(k) != canonical.get(k)
-            )
-            raise KittiFormatError(
-                path,
-                f"the results here were made with other settings ({', '.join(keys)} differ); "
-                f"delete {path.parent} to evaluate again",
-            )
-        return
-    with atomic_write(path) as f:
-        json.dump(canonical, f, indent=2)
-        f.write("\n")
 
 
 def timing_summary(timings: dict, batch_timings: list[dict]) -> dict[str, float]:
@@ -187,8 +178,7 @@ def evaluate_detector_workdir(
     result_dir = out / "data"
     if precision == "int8":
         int8 = int8 or Int8Settings()
-    settings = run_settings(detector, split, root, dtype, runtime, precision, int8)
-    compile_s = None
+    compile_s, network = None, None
     if onnx:  # load (or export) first: a refused export leaves no run.json behind
         compile_s = use_runtime(
             evaluator,
@@ -200,7 +190,10 @@ def evaluate_detector_workdir(
             threads=threads,
             int8=int8,
         )
-    _check_resumable(out / "run.json", settings)
+        exported = export_dir or default_export_dir(workdir, detector)
+        network = network_identity(exported, runtime, precision, int8)
+    settings = run_settings(detector, split, root, dtype, runtime, precision, int8, network)
+    check_resumable(out / "run.json", settings, result_dir)
     print(precision_line(workdir, detector, runtime, precision, int8, export_dir), flush=True)
     ids = evaluator.frame_ids()
     resumed = sum((result_dir / f"{fid}.txt").exists() for fid in ids)

@@ -20,8 +20,10 @@ Guard frames: ``--guard-data DIR`` (a KITTI-format root, e.g. generated frames t
 saw: ``python -m gac_jax.data.synthetic --out DIR --num 3200 --seed 2 --val-fraction 0.9375``)
 split ``--split`` (default ``val``), else the run's own val split; ``--frames N`` takes the
 first N (whole batches). Result files go to ``W/eval/guard_<data>_<split>/<candidate>/data``,
-one per frame as they are made; a rerun resumes them (a folder made with other settings is
-refused).
+one per frame as they are made; a rerun resumes them (a folder made from other weights, by
+their sha256, or another exported network starts again; one made with other settings is
+refused). The verdicts are bound to the weights' sha256, the exported graph, the int8 model,
+the runtime's version and the score threshold (:mod:`gac_jax.deploy.guard_verdict`).
 
 A depth workdir (``python train.py --task depth``) gets the depth guard instead: the paired
 per-frame SILog difference, margin 0.2 (:mod:`gac_jax.cli.guard_depth`).
@@ -115,30 +117,36 @@ def _folder(key: str, int8) -> str:
 
 def _predict(workdir, config, step, source, runtime, precision, int8, out, threads, batches):
     """Detections ``{frame id: KittiObjects}`` of one runtime/precision (resumable files in
-    ``out/data``) and the median model time per frame (ms; None when all were resumed)."""
+    ``out/data``), the median model time per frame (ms; None when all were resumed), the
+    detector and the exported network's identity (None for jax)."""
     import jax.numpy as jnp
     import numpy as np
 
-    from gac_jax.cli.evaluate_detector import _check_resumable, run_settings
-    from gac_jax.deploy.runtime_choice import use_runtime
+    from gac_jax.cli.evaluate_detector import run_settings
+    from gac_jax.cli.result_folder import check_resumable
+    from gac_jax.deploy.guard_verdict import network_identity
+    from gac_jax.deploy.runtime_choice import default_export_dir, use_runtime
     from gac_jax.trained.detector import evaluator_for, load_detector
 
     dtype = jnp.bfloat16 if (runtime, precision) == ("jax", "bf16") else jnp.float32
     detector = load_detector(workdir, config, step=step, dtype=dtype)
     evaluator = evaluator_for(detector, source, config.data.eval_batch_size)
+    network = None
     if runtime != "jax":
         use_runtime(evaluator, detector, workdir, runtime, precision, threads=threads, int8=int8)
+        export_dir = default_export_dir(workdir, detector)
+        network = network_identity(export_dir, runtime, precision, int8)
     root = Path(source.layout.root) if hasattr(source, "layout") else Path(".")
-    settings = run_settings(detector, source.split, root, dtype, runtime, precision, int8)
+    settings = run_settings(detector, source.split, root, dtype, runtime, precision, int8, network)
     out.mkdir(parents=True, exist_ok=True)
-    _check_resumable(out / "run.json", settings)
+    check_resumable(out / "run.json", settings, out / "data")
     ids = evaluator.frame_ids()[: batches * evaluator.batch_size]
     if runtime == "jax" and not all((out / "data" / f"{i}.txt").exists() for i in ids):
         evaluator.compile(detector.variables, (config.data.height, config.data.width))
     found, _ = evaluator.predict_split(detector.variables, out / "data", True, batches)
     per_frame = [b["model_s"] / b["frames"] for b in evaluator.batch_timings if b["frames"]]
     model_ms = 1e3 * float(np.median(per_frame)) if per_frame else None
-    return {i: found[i] for i in ids}, model_ms, detector
+    return {i: found[i] for i in ids}, model_ms, detector, network
 
 
 def guard_workdir(args) -> dict:
@@ -188,7 +196,7 @@ def guard_workdir(args) -> dict:
     classes = tuple(config.data.classes)
     base = workdir / "eval" / f"guard_{root.resolve().name}_{split}"
     runs = [("jax", "f32", False), *candidates]
-    results, speed = {}, {}
+    results, speed, networks = {}, {}, {}
     with workdir_lock.hold_if_inside(workdir, None):
         for runtime, precision, heading in runs:
             key = guard_verdict.candidate_key(
@@ -197,10 +205,10 @@ def guard_workdir(args) -> dict:
             print(f"=== {key} on {frames} frames of {root} ({split}) ===", flush=True)
             int8 = _settings(args, heading) if precision == "int8" else None
             out = base / _folder(key, int8)
-            dets, ms, detector = _predict(
+            dets, ms, detector, network = _predict(
                 workdir, config, args.step, source, runtime, precision, int8, out, threads, batches
             )
-            results[key], speed[key] = dets, ms
+            results[key], speed[key], networks[key] = dets, ms, network
         ids = list(results["jax:f32"])
         gt = [ground_truth(source, i) for i in range(len(ids))]
         ref = [results["jax:f32"][i] for i in ids]
@@ -227,6 +235,7 @@ def guard_workdir(args) -> dict:
                 runtime,
                 precision,
                 int8,
+                networks[key],
                 verdict=decision["verdict"],
                 reason=decision["reason"],
                 frames=len(ids),
@@ -246,7 +255,7 @@ def guard_workdir(args) -> dict:
             "heading_tolerance_deg": tol,
             "min_score": min_score,
         }
-        model = guard_verdict.model_identity(export_dir, detector.tag)
+        model = guard_verdict.model_identity(export_dir, detector.tag, detector.weights_sha256)
         report["guard_file"] = str(guard_verdict.write_guard(export_dir, model, rule, verdicts))
     print_report(report, speed["jax:f32"])
     return report

@@ -109,6 +109,7 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
                 runtime,
                 precision,
                 int8,
+                guard_verdict.network_identity(export_dir, runtime, precision, int8),
                 verdict=decision["verdict"],
                 reason=decision["reason"],
                 frames=decision["frames"],
@@ -123,7 +124,7 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
             "margin_silog": margin,
             "alpha": alpha,
         }
-        model = guard_verdict.model_identity(export_dir, f"step{step}")
+        model = guard_verdict.model_identity(export_dir, f"step{step}", ref["weights_sha256"])
         report["guard_file"] = str(guard_verdict.write_guard(export_dir, model, rule, verdicts))
     report["reference_ms"] = _model_ms(ref)
     print_depth_report(report)

@@ -3,16 +3,22 @@
 ``python -m gac_jax.cli.guard`` writes ``<export folder>/guard.json`` (the folder that holds
 ``model.onnx`` / ``model_int8.xml`` of one checkpoint, ``W/export/<step>`` by default):
 
-    {"format": 1, "model": {"weights": "step1750", "onnx_sha256": ...},
-     "rule": {...}, "verdicts": {"openvino:int8": {"runtime", "precision", "int8",
-     "verdict": "within"|"beyond"|"undecided", "reason", "frames", "guard_set", "created",
-     ...}, ...}}
+    {"format": 2,
+     "model": {"weights": "step1750", "weights_sha256": ..., "onnx_sha256": ...},
+     "rule": {..., "min_score": 0.5, ...},
+     "verdicts": {"openvino:int8": {"runtime", "precision", "int8", "network": {"onnx_sha256",
+        "int8_sha256", "libraries"}, "verdict": "within"|"beyond"|"undecided", "reason",
+        "frames", "guard_set", "created", ...}, ...}}
 
-A verdict applies to a run only for the same weights (and exported graph), runtime, precision
-and, for int8, the same calibration settings; :func:`guard_status` says which, and
-:func:`precision_line` is the line ``evaluate.py`` (and ``predict``) print. Writes are atomic;
-a new guard run replaces the verdicts of the precisions it guarded and keeps the others when
-the model is the same.
+A verdict is bound to the weights it was made for by their hash (the sha256 of every array,
+:func:`gac_jax.trained.fingerprint.weights_sha256`), not by the step: a model retrained to the
+same step is "not guarded". It applies to a run only for the same weights, exported graph,
+int8 model (its IR's identity where the folder holds the int8 model of the same settings),
+runtime and quantizer versions, runtime, precision, int8 calibration settings and score
+threshold; :func:`verdict_for` says which and why not, and :func:`precision_line` is the line
+``evaluate.py`` (and ``predict``) print. Writes are atomic; a new guard run replaces the
+verdicts of the precisions it guarded and keeps the others when the model is the same.
+Verdict files of an earlier format are not read (their rule and identity were weaker).
 """
 
 from __future__ import annotations
@@ -25,9 +31,12 @@ from pathlib import Path
 from gac_jax.data.files import atomic_write
 from gac_jax.deploy.export import artifact
 from gac_jax.deploy.int8 import Int8Settings
+from gac_jax.trained.fingerprint import short
 
 GUARD_FILE = "guard.json"
-FORMAT = 1
+FORMAT = 2
+# the packages whose version is part of a network's identity, per runtime (+ NNCF for int8)
+RUNTIME_LIBRARIES = {"onnxruntime": ("onnxruntime",), "openvino": ("openvino",)}
 
 
 def candidate_key(runtime: str, precision: str, int8: Int8Settings | None = None) -> str:
@@ -45,14 +54,45 @@ def _int8_block(precision: str, int8: Int8Settings | None) -> dict | None:
     return settings
 
 
-def model_identity(export_dir: str | os.PathLike, weights: str) -> dict:
-    """What a verdict belongs to: the weights' tag and the exported graph's sha256 (None when
-    the folder holds no export)."""
+def model_identity(export_dir: str | os.PathLike, weights: str, weights_sha256: str) -> dict:
+    """What a verdict file belongs to: the weights' tag and hash, and the exported graph's
+    sha256 (None when the folder holds no export)."""
+    meta = _read_export(export_dir)
+    return {
+        "weights": weights,
+        "weights_sha256": weights_sha256,
+        "onnx_sha256": meta.get("sha256") if meta else None,
+    }
+
+
+def _read_export(export_dir) -> dict | None:
     try:
-        sha = artifact.read_export(Path(export_dir)).get("sha256")
+        return artifact.read_export(Path(export_dir))
     except (OSError, ValueError):
-        sha = None
-    return {"weights": weights, "onnx_sha256": sha}
+        return None
+
+
+def network_identity(
+    export_dir: str | os.PathLike,
+    runtime: str,
+    precision: str,
+    int8: Int8Settings | None = None,
+) -> dict:
+    """What the results of an exported network depend on besides the weights: the
+    ``model.onnx`` sha256, for int8 the IR's identity (:func:`gac_jax.deploy.int8.ir_sha256`)
+    and what it was made from (the
+    ``export.json`` int8 block: source graph, calibration, float32 scope), and the versions of
+    the runtime (and NNCF for int8) installed now."""
+    meta = _read_export(export_dir) or {}
+    names = RUNTIME_LIBRARIES.get(runtime, (runtime,)) + (("nncf",) if precision == "int8" else ())
+    out = {"onnx_sha256": meta.get("sha256"), "libraries": artifact.library_versions(names)}
+    if precision == "int8":
+        block = meta.get("int8") or {}
+        out["int8_sha256"] = block.get("ir_sha256")
+        out["int8_made_from"] = {
+            k: block.get(k) for k in ("source_sha256", "calibration", "keep_float")
+        }
+    return out
 
 
 def read_guard(export_dir: str | os.PathLike) -> dict | None:
@@ -79,29 +119,68 @@ def write_guard(export_dir: str | os.PathLike, model: dict, rule: dict, verdicts
     return out / GUARD_FILE
 
 
-def verdict_entry(runtime: str, precision: str, int8: Int8Settings | None, **fields) -> dict:
-    """One candidate's entry of the verdict file (``fields``: verdict, reason, frames, ...)."""
+def verdict_entry(
+    runtime: str, precision: str, int8: Int8Settings | None, network: dict, **fields
+) -> dict:
+    """One candidate's entry of the verdict file (``network``: :func:`network_identity` of
+    the network that ran; ``fields``: verdict, reason, frames, ...)."""
     entry = {"runtime": runtime, "precision": precision, "int8": _int8_block(precision, int8)}
-    return entry | fields
+    return entry | {"network": network} | fields
 
 
-def guard_status(
+def verdict_for(
     export_dir: str | os.PathLike,
     weights: str,
+    weights_sha256: str,
     runtime: str,
     precision: str,
     int8: Int8Settings | None = None,
-) -> tuple[str, dict | None]:
-    """``(status, entry)``: ``status`` is the guard's verdict (within / beyond / undecided)
-    for exactly this model, runtime, precision and int8 calibration, or ``"not guarded"``
-    (``entry`` None) when the folder has no such verdict."""
+    score_threshold: float | None = None,
+) -> tuple[str, dict | None, str]:
+    """``(status, entry, why)``: ``status`` is the guard's verdict (within / beyond /
+    undecided) for exactly these weights (by hash), exported network, runtime and quantizer
+    versions, precision, int8 calibration and score threshold (None: not compared), or
+    ``"not guarded"`` with ``entry`` None and ``why`` saying in a few words what differs."""
     data = read_guard(export_dir)
-    if data is None or data.get("model") != model_identity(export_dir, weights):
-        return "not guarded", None
+    if data is None:
+        return "not guarded", None, "no verdict for this export"
+    stored = data.get("model") or {}
+    if stored.get("weights_sha256") != weights_sha256:
+        return (
+            "not guarded",
+            None,
+            f"the verdicts are for other weights (sha256 {short(stored.get('weights_sha256'))}, "
+            f"these are {short(weights_sha256)})",
+        )
+    if stored != model_identity(export_dir, weights, weights_sha256):
+        return "not guarded", None, "the exported graph differs from the one guarded"
     entry = data["verdicts"].get(candidate_key(runtime, precision, int8))
     if entry is None or entry.get("int8") != _int8_block(precision, int8):
-        return "not guarded", None
-    return str(entry.get("verdict")), entry
+        return "not guarded", None, "no verdict for this runtime, precision and int8 settings"
+    rule_score = (data.get("rule") or {}).get("min_score")
+    if score_threshold is not None and rule_score is not None and rule_score != score_threshold:
+        return (
+            "not guarded",
+            None,
+            f"guarded at score threshold {rule_score}, this run uses {score_threshold}",
+        )
+    why = _network_differs(entry.get("network") or {}, export_dir, runtime, precision, int8)
+    if why:
+        return "not guarded", None, why
+    return str(entry.get("verdict")), entry, ""
+
+
+def _network_differs(guarded: dict, export_dir, runtime, precision, int8) -> str | None:
+    now = network_identity(export_dir, runtime, precision, int8)
+    for name, version in (guarded.get("libraries") or {}).items():
+        if now["libraries"].get(name) != version:
+            return f"guarded with {name} {version}, this is {now['libraries'].get(name)}"
+    # the int8 IR in the folder is compared when it was made like the guarded one (else it is
+    # rebuilt on use; NNCF's calibration is deterministic, so it comes back the same)
+    same_recipe = precision == "int8" and now["int8_made_from"] == guarded.get("int8_made_from")
+    if same_recipe and now["int8_sha256"] != guarded.get("int8_sha256"):
+        return "the int8 model differs from the one guarded (its IR's sha256)"
+    return None
 
 
 def precision_line(
@@ -113,13 +192,22 @@ def precision_line(
     export_dir: str | os.PathLike | None = None,
 ) -> str:
     """One line: which precision runs and whether the guard decided it for this model
-    (``detector``: a :class:`~gac_jax.trained.detector.LoadedDetector`; ``export_dir``
-    default ``W/export/<step>``), e.g. ``precision: openvino int8; guard: within on 3000
-    frames (2026-12-04): ...`` or ``...; not guarded for these weights (...)``."""
+    (``detector``: a :class:`~gac_jax.trained.detector.LoadedDetector`, whose weights' hash
+    and ``eval.score_threshold`` the verdict must match; ``export_dir`` default
+    ``W/export/<step>``), e.g. ``precision: openvino int8; guard: within on 3000 frames
+    (2026-12-04): ...`` or ``...; not guarded for these weights (...)``."""
     from gac_jax.deploy.runtime_choice import default_export_dir
 
     export_dir = export_dir or default_export_dir(workdir, detector)
-    return describe_precision(export_dir, detector.tag, runtime, precision, int8)
+    return describe_precision(
+        export_dir,
+        detector.tag,
+        runtime,
+        precision,
+        int8,
+        weights_sha256=detector.weights_sha256,
+        score_threshold=float(detector.config.eval.score_threshold),
+    )
 
 
 def describe_precision(
@@ -128,19 +216,25 @@ def describe_precision(
     runtime: str,
     precision: str,
     int8: Int8Settings | None = None,
+    *,
+    weights_sha256: str,
+    score_threshold: float | None = None,
 ) -> str:
     """:func:`precision_line` for any exported model: ``export_dir`` (where its
-    ``guard.json`` lies) and ``weights`` (its tag, e.g. ``step875``)."""
+    ``guard.json`` lies), ``weights`` (its tag, e.g. ``step875``) and ``weights_sha256``
+    (:func:`gac_jax.trained.fingerprint.weights_sha256` of the weights that run)."""
     names = {"f32": "float32", "bf16": "bfloat16", "int8": "int8"}
     what = f"{runtime} {names.get(precision, precision)}"
     if int8 is not None and precision == "int8":
         what += " (heading kept in float32)" if int8.keep_heading else ""
     if runtime == "jax" and precision == "f32":
         return f"precision: {what}, the guard's reference"
-    status, entry = guard_status(export_dir, weights, runtime, precision, int8)
+    status, entry, why = verdict_for(
+        export_dir, weights, weights_sha256, runtime, precision, int8, score_threshold
+    )
     if entry is None:
         return (
-            f"precision: {what}; not guarded for these weights "
+            f"precision: {what}; not guarded for these weights: {why} "
             f"(python -m gac_jax.cli.guard decides it)"
         )
     frames, date = entry.get("frames"), str(entry.get("created", ""))[:10]

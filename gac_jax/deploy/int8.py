@@ -160,6 +160,28 @@ def _sha256_file(path: Path) -> str:
     return artifact.sha256_bytes(path.read_bytes())
 
 
+# OpenVINO names the nodes it creates ``<Type>_<n>`` from a per-process counter, so the same
+# quantized network serialized in another process (or after another model) differs in those
+# names only; the IR's identity renumbers them in order of appearance
+_AUTO_NAME = re.compile(r"\b([A-Z][A-Za-z0-9]*)_(\d+)\b")
+
+
+def ir_sha256(out_dir: str | os.PathLike) -> str:
+    """The identity of the int8 IR in ``out_dir``: sha256 of ``model_int8.xml`` with the
+    nodes' generated names renumbered by first appearance, then of ``model_int8.bin``. Equal
+    for the same quantized network wherever it was made; any other topology, attribute or
+    constant (weights, quantization ranges) gives another."""
+    out = Path(out_dir)
+    seen: dict[str, int] = {}
+
+    def renumber(match: re.Match) -> str:
+        index = seen.setdefault(match.group(0), len(seen))
+        return f"{match.group(1)}_#{index}"
+
+    xml = _AUTO_NAME.sub(renumber, (out / INT8_MODEL).read_text())
+    return artifact.sha256_bytes(xml.encode() + (out / INT8_WEIGHTS).read_bytes())
+
+
 # ----------------------------------------------------------------------------- calibration
 
 
@@ -383,6 +405,7 @@ def ensure_int8(out_dir: str | os.PathLike, task: str, config, settings: Int8Set
         **wanted,
         "calibration_frames": described,
         "sha256": sums,
+        "ir_sha256": ir_sha256(out),
         "libraries": _versions(),
         "seconds": round(seconds, 1),
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),

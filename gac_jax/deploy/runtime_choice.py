@@ -64,19 +64,19 @@ def network_file(
     :class:`~gac_jax.deploy.export.sources.ExportSource`; exported when the folder is empty,
     refused when stale), or for ``int8`` the quantized ``out/model_int8.xml`` made from it.
 
-    Writing into ``out`` (a first export, an int8 model that may be rebuilt) holds the lock of
-    ``workdir`` when ``out`` lies inside it; using an existing float export only reads.
+    Writing into ``out`` (a first export, an export of other weights replaced, an int8 model
+    that may be rebuilt) holds the lock of ``workdir`` when ``out`` lies inside it; using an
+    existing float export of these weights only reads.
 
     Raises:
       KittiFormatError: a stale or corrupted export, a failed export or quantization, a
         ``--int8-keep-float`` pattern that matches no layer (naming the folder's file).
     """
-    from gac_jax.deploy.export.artifact import EXPORT_FILE, MODEL_FILE
+    from gac_jax.deploy.export.artifact import MODEL_FILE
     from gac_jax.deploy.export.networks import ExportError
-    from gac_jax.deploy.export.sources import ensure_export
+    from gac_jax.deploy.export.sources import ensure_export, will_write
 
-    absent = not (out / EXPORT_FILE).exists() and not (out / MODEL_FILE).exists()
-    writes = absent or precision == "int8"
+    writes = will_write(source, out) or precision == "int8"
     lock = workdir_lock.hold_if_inside(workdir, out) if writes else contextlib.nullcontext()
     with lock:
         try:
@@ -132,6 +132,7 @@ def runtime_predict(
         if detector.step is not None
         else detector.weights.removeprefix("converted weights "),
         workdir=workdir,
+        weights_sha256=detector.weights_sha256,
     )
     size = (config.data.height, config.data.width)
     network = OnnxNetwork(
@@ -195,10 +196,12 @@ def runtime_predictor(
     precision: str,
     export_dir: str | Path | None = None,
     int8: Int8Settings | None = None,
+    weights_sha256: str | None = None,
 ):
     """The depth predictor of a runtime: the jitted network (``jax``; ``bf16`` = bfloat16
     compute dtype) or the exported one (written to ``export_dir``, default
-    ``W/export/step<N>``, when absent; refused when stale or corrupted; ``int8``: how
+    ``W/export/step<N>``, when absent or made from other weights; refused when corrupted or
+    made for another config; ``int8``: how
     :mod:`gac_jax.deploy.int8` calibrates the quantized network, default settings if None)."""
     if runtime == "jax":
         if precision == "bf16":
@@ -208,7 +211,7 @@ def runtime_predictor(
     from gac_jax.deploy.runtimes import DEPTH_OUTPUTS, OnnxNetwork, RuntimeDepthPredictor
 
     out = Path(export_dir) if export_dir else Path(workdir) / "export" / f"step{step}"
-    source = depth_source(config, model, variables, step=step)
+    source = depth_source(config, model, variables, step=step, weights_sha256=weights_sha256)
     network = OnnxNetwork(
         network_file(source, out, precision, int8, workdir),
         runtime,

@@ -41,6 +41,7 @@ from gac_jax.detection.anchors import generate_anchors
 from gac_jax.detection.inference import PostprocessConfig
 from gac_jax.evaluation.detector_evaluator import DetectionEvaluator
 from gac_jax.models.detector import Detector
+from gac_jax.trained.fingerprint import weights_sha256
 from gac_jax.training.checkpointing import Checkpoints
 from gac_jax.weights import pretrained
 
@@ -57,6 +58,8 @@ class LoadedDetector:
       weights: where the weights came from (human-readable); tag: short name of
         the weights for folder names (``step<N>`` or the converted folder's name);
       step: the workdir checkpoint's step (None for converted weights).
+      weights_sha256: the identity of ``variables``
+        (:func:`gac_jax.trained.fingerprint.weights_sha256`, computed on first use).
     """
 
     config: ml_collections.ConfigDict
@@ -66,6 +69,10 @@ class LoadedDetector:
     weights: str
     tag: str
     step: int | None = None
+
+    @functools.cached_property
+    def weights_sha256(self) -> str:
+        return weights_sha256(self.variables)
 
 
 def postprocess_config(config: ml_collections.ConfigDict) -> PostprocessConfig:

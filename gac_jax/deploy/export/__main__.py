@@ -108,9 +108,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {args.out}/{MODEL_FILE}: {e}", file=sys.stderr)
         return EXIT_INVALID_INPUT
     h, w = source.image_size
+    weights = source.weights
+    origin = f"step {weights['step']}" if "step" in weights else weights["checkpoint"]
     print(
-        f"{args.task} {source.weights} -> {args.out}/{MODEL_FILE} ({meta['size_bytes'] / 1e6:.1f} "
-        f"MB, opset {args.opset}, input {h}x{w}, sha256 {meta['sha256'][:12]})"
+        f"{args.task} {origin} (weights sha256 {weights['sha256'][:12]}) -> {args.out}/"
+        f"{MODEL_FILE} ({meta['size_bytes'] / 1e6:.1f} MB, opset {args.opset}, input {h}x{w}, "
+        f"sha256 {meta['sha256'][:12]})"
     )
     return 0
 

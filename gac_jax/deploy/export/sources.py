@@ -10,6 +10,7 @@ matching one, exports into an empty one and refuses a stale or corrupted one.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ import ml_collections
 
 from gac_jax.data.files import KittiFormatError
 from gac_jax.deploy.export import artifact
+from gac_jax.trained.fingerprint import short, weights_sha256
 
 TASKS = ("detect3d", "depth")
 
@@ -25,7 +27,9 @@ TASKS = ("detect3d", "depth")
 @dataclasses.dataclass
 class ExportSource:
     """A network ready to export. ``weights``: ``{'step': N}`` (a workdir checkpoint) or
-    ``{'checkpoint': absolute path}`` (converted weights); ``image_size``: (H, W) input."""
+    ``{'checkpoint': absolute path}`` (converted weights), with ``'sha256'``: the identity of
+    the variables (:func:`gac_jax.trained.fingerprint.weights_sha256`), which an existing
+    export must match; ``image_size``: (H, W) input."""
 
     task: str
     config: ml_collections.ConfigDict
@@ -46,14 +50,18 @@ class ExportSource:
         }
 
 
-def _weights(step: int | None, checkpoint) -> dict:
+def _weights(step: int | None, checkpoint, variables, sha256: str | None = None) -> dict:
+    sha256 = sha256 or weights_sha256(variables)
     if checkpoint is not None:
-        return {"checkpoint": str(Path(checkpoint).resolve())}
-    return {"step": int(step)}
+        return {"checkpoint": str(Path(checkpoint).resolve()), "sha256": sha256}
+    return {"step": int(step), "sha256": sha256}
 
 
-def detector_source(config, model, variables, *, step=None, checkpoint=None, workdir=None):
-    """:class:`ExportSource` of a loaded detector (``model``: the float32 ``Detector``)."""
+def detector_source(
+    config, model, variables, *, step=None, checkpoint=None, workdir=None, weights_sha256=None
+):
+    """:class:`ExportSource` of a loaded detector (``model``: the float32 ``Detector``;
+    ``weights_sha256``: the variables' hash when already known, else computed)."""
     from gac_jax.builders.detect3d import anchor_layout, filter_options, sign_axis
 
     d = config.data
@@ -90,7 +98,7 @@ def detector_source(config, model, variables, *, step=None, checkpoint=None, wor
         config,
         model,
         variables,
-        _weights(step, checkpoint),
+        _weights(step, checkpoint, variables, weights_sha256),
         (d.height, d.width),
         network_config,
         decoding,
@@ -98,7 +106,9 @@ def detector_source(config, model, variables, *, step=None, checkpoint=None, wor
     )
 
 
-def depth_source(config, model, variables, *, step, workdir=None) -> ExportSource:
+def depth_source(
+    config, model, variables, *, step, workdir=None, weights_sha256=None
+) -> ExportSource:
     """:class:`ExportSource` of a loaded depth U-Net (input: ``height`` x ``eval_width``)."""
     d = config.data
     network_config = {
@@ -121,7 +131,7 @@ def depth_source(config, model, variables, *, step, workdir=None) -> ExportSourc
         config,
         model,
         variables,
-        _weights(step, None),
+        _weights(step, None, variables, weights_sha256),
         (d.height, d.eval_width),
         network_config,
         decoding,
@@ -200,17 +210,53 @@ def export_source(
     return artifact.write_export(out_dir, graph.SerializeToString(), meta)
 
 
+def _stored_weights(meta: dict) -> dict:
+    return meta.get("weights") if isinstance(meta.get("weights"), dict) else {}
+
+
+def will_write(source: ExportSource, out_dir: str | os.PathLike) -> bool:
+    """Whether :func:`ensure_export` would write ``out_dir``: no export there yet, or one of
+    other weights (a damaged one is refused, not rewritten, so it counts as no write)."""
+    out = Path(out_dir)
+    if not (out / artifact.EXPORT_FILE).exists() and not (out / artifact.MODEL_FILE).exists():
+        return True
+    try:
+        meta = json.loads((out / artifact.EXPORT_FILE).read_text())
+    except (OSError, ValueError):
+        return False
+    return (
+        not isinstance(meta, dict)
+        or _stored_weights(meta).get("sha256") != (source.weights["sha256"])
+    )
+
+
 def ensure_export(
     source: ExportSource, out_dir: str | os.PathLike, opset: int = artifact.DEFAULT_OPSET
 ) -> tuple[dict, bool]:
     """``(meta, exported_now)``: the export of ``source`` in ``out_dir``, written if absent.
 
+    An export of other weights (another sha256: a model retrained to the same step, a
+    checkpoint replaced, an export from before weights were hashed) is replaced, saying why in
+    one line; its int8 model and guard verdicts are then stale by their own records
+    (:mod:`gac_jax.deploy.int8` compares the ``model.onnx`` sha256, :mod:`gac_jax.deploy.
+    guard_verdict` the weights' sha256).
+
     Raises:
-      KittiFormatError: an existing export that is corrupted or made for another run.
+      KittiFormatError: an existing export that is corrupted or made for another config or
+        input size.
     """
     out = Path(out_dir)
     if not (out / artifact.EXPORT_FILE).exists() and not (out / artifact.MODEL_FILE).exists():
         return export_source(source, out, opset), True
     meta = artifact.read_export(out)
+    stored = _stored_weights(meta)
+    if stored.get("sha256") != source.weights["sha256"]:
+        print(
+            f"exporting again into {out}: the export there was made from other weights "
+            f"(sha256 {short(stored.get('sha256'))}, these are "
+            f"{short(source.weights['sha256'])})",
+            flush=True,
+        )
+        return export_source(source, out, opset), True
     artifact.check_export(out, meta, source.expected())
     return meta, False
