@@ -51,3 +51,27 @@ def test_any_change_gives_another_hash():
     recast["batch_stats"]["bn"]["mean"] = recast["batch_stats"]["bn"]["mean"].astype(np.float64)
     others = [weights_sha256(t) for t in (one_value, renamed, reshaped, recast, tree(seed=1))]
     assert len({base, *others}) == 6
+
+
+def test_int8_ir_identity_ignores_only_openvino_s_generated_names(tmp_path):
+    """OpenVINO numbers the nodes it creates from a per-process counter: the same quantized
+    network saved in two processes differs in those names only (seen: ``Constant_231582``
+    vs ``Constant_719``), and must keep its identity; a changed attribute or weight must not."""
+    from gac_jax.deploy.int8 import INT8_MODEL, INT8_WEIGHTS, ir_sha256
+
+    def ir(folder, first: int, second: int, stride: str = "1,1", weights: bytes = b"\0\1"):
+        folder.mkdir()
+        (folder / INT8_MODEL).write_text(
+            f'<layer id="3" name="Constant_{first}" type="Const"/>\n'
+            f'<layer id="4" name="head/cls_out" type="Convolution" strides="{stride}"/>\n'
+            f'<layer id="5" name="ShapeOf_{second}" type="ShapeOf"/>\n'
+            f'<edge from-layer="Constant_{first}" to-layer="head/cls_out"/>\n'
+        )
+        (folder / INT8_WEIGHTS).write_bytes(weights)
+        return ir_sha256(folder)
+
+    a = ir(tmp_path / "a", 231582, 231595)
+    assert a == ir(tmp_path / "b", 719, 732)
+    assert a != ir(tmp_path / "c", 719, 719)  # two nodes became one: another graph
+    assert a != ir(tmp_path / "d", 719, 732, stride="2,2")
+    assert a != ir(tmp_path / "e", 719, 732, weights=b"\0\2")
