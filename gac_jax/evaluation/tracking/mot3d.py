@@ -93,7 +93,10 @@ def mot3d_metrics(sequences, cls: str, iou: float) -> dict:
         prepare_class(s.labels, s.results, cls, s.n_frames, similarity=similarity_3d, match_iou=iou)
         for s in sequences
     ]
-    scores = [track_mean_scores(s.results, p.tr_row, cls) for s, p in zip(sequences, prepared)]
+    scores = [
+        track_mean_scores(s.results, p.tr_row, cls)
+        for s, p in zip(sequences, prepared, strict=True)
+    ]
     tp_scores, n_gt = [], 0.0
     for seq, sc in zip(prepared, scores, strict=True):
         matched = clear_match(seq, iou)
