@@ -164,7 +164,7 @@ class VelocityErrors:
 
     def as_dict(self) -> dict:
         e = self.errors
-        stat = (lambda f: float(f(e))) if e.size else (lambda f: float("nan"))
+        stat = (lambda f: float(f(e))) if e.size else (lambda f: None)
         return {
             "frame": self.frame,
             "pairs": int(e.size),
