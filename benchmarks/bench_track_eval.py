@@ -37,10 +37,10 @@ SIZES |= {"Person": (1.3, 0.6, 0.8), "Cyclist": (1.7, 0.6, 1.8)}
 TYPES = ("Car", "Car", "Car", "Car", "Van", "Pedestrian", "Pedestrian", "Person", "Cyclist")
 
 
-def _line(frame, tid, typ, box, dims, loc, ry, score=None):
+def _line(frame, tid, typ, box, dims, loc, ry, score=None, occ=0):
     x1, y1, x2, y2 = box
     text = (
-        f"{frame} {tid} {typ} 0 {0 if score is not None else np.random.randint(0, 3)} -10 "
+        f"{frame} {tid} {typ} 0 {occ} -10 "
         f"{x1:.2f} {y1:.2f} {x2:.2f} {y2:.2f} {dims[0]:.2f} {dims[1]:.2f} {dims[2]:.2f} "
         f"{loc[0]:.2f} {loc[1]:.2f} {loc[2]:.2f} {ry:.2f}"
     )
@@ -60,14 +60,13 @@ def _project(loc, dims):
 def generate(root: Path, n_seq: int, n_frames: int, seed: int = 0) -> int:
     """Writes ``label_02`` and ``results``; returns the number of ground-truth boxes."""
     rng = np.random.default_rng(seed)
-    np.random.seed(seed)
     (root / "label_02").mkdir(parents=True)
     (root / "results").mkdir()
     total = 0
     for s in range(n_seq):
         gt, res = [], []
         next_id = 1000
-        for obj in range(36):
+        for obj in range(24):
             typ = TYPES[rng.integers(len(TYPES))]
             start = int(rng.integers(0, n_frames - 10))
             length = int(rng.integers(10, min(n_frames - start, 200) + 1))
@@ -80,7 +79,8 @@ def generate(root: Path, n_seq: int, n_frames: int, seed: int = 0) -> int:
                 if loc[2] < 4:
                     break
                 box = _project(loc, dims)
-                gt.append((f, _line(f, obj, typ, box, dims, loc, 0.1)))
+                occ = int(rng.integers(0, 3))
+                gt.append((f, _line(f, obj, typ, box, dims, loc, 0.1, occ=occ)))
                 total += 1
                 if rng.random() < 0.12:
                     continue

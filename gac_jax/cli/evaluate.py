@@ -153,7 +153,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="evaluate.py",
         description="KITTI evaluation: 3D object detection AP (2D/BEV/3D/AOS, R11 and R40), "
-        "depth prediction metrics, or tracking (HOTA, CLEAR MOT, IDF1, 3D MOT), from files on disk.",
+        "depth prediction metrics, or tracking (HOTA, CLEAR MOT, IDF1, 3D MOT), from files "
+        "on disk.",
     )
     parser.add_argument("--task", required=True, choices=("detect3d", "depth", "track"))
     parser.add_argument("--json", metavar="OUT", help="also write the result dict as JSON")
