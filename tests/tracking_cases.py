@@ -138,7 +138,26 @@ def _generated(seed: int, n_seq: int, n_frames: int):
     return labels, results
 
 
-CASES = ("hand", "generated_1", "generated_2", "crowded")
+def _overlapping(seed: int, n_frames: int):
+    """Pairs of cars a few pixels apart, tracked with noise larger than the gap: every frame
+    has several matchings above IoU 0.5, and continuing the previous one decides."""
+    rng = np.random.default_rng(seed)
+    gt_rows, tr_rows = [], []
+    for pair in range(3):
+        x, y = 150.0 + 300 * pair, 120.0
+        for f in range(n_frames):
+            for k in range(2):
+                box = (x + 6 * k + 2 * f, y, x + 6 * k + 2 * f + 100, y + 80)
+                gt_rows.append((f, 2 * pair + k, "Car", 0, 0, *box))
+                if rng.random() < 0.1:
+                    continue
+                tid = 10 * pair + k + (5 if f >= n_frames // 2 and k == 0 and pair == 1 else 0)
+                pred = tuple(round(float(v), 2) for v in np.array(box) + rng.normal(0, 4, 4))
+                tr_rows.append((f, tid, "Car", 0, 0, *pred, round(float(rng.uniform(0.3, 1)), 3)))
+    return {"0000": gt_rows}, {"0000": tr_rows}
+
+
+CASES = ("hand", "generated_1", "generated_2", "crowded", "overlapping")
 
 
 def case_files(name: str) -> tuple[dict, dict]:
@@ -149,6 +168,8 @@ def case_files(name: str) -> tuple[dict, dict]:
         return _generated(1, n_seq=4, n_frames=40)
     if name == "generated_2":
         return _generated(2, n_seq=3, n_frames=60)
+    if name == "overlapping":
+        return _overlapping(4, n_frames=25)
     if name == "crowded":  # many overlapping boxes: the per-frame Hungarian has real choices
         labels, results = _generated(3, n_seq=2, n_frames=30)
         for seq in labels:
