@@ -11,7 +11,7 @@ builtins before importing it (the only change; nothing of it is copied or edited
 
 Each case of ``tests/tracking_cases.py`` is written to a temporary folder in TrackEval's KITTI
 layout, evaluated for Car and Pedestrian with HOTA, CLEAR (threshold 0.5) and Identity, and
-the combined-sequence figures go to the JSON fixture that tests/test_tracking_eval.py reads.
+the combined and per-sequence figures go to the JSON fixture that tests/test_tracking_eval.py reads.
 """
 
 from __future__ import annotations
@@ -35,6 +35,20 @@ HOTA_SCALARS = ("HOTA(0)", "LocA(0)")
 CLEAR_FIELDS = ("MOTA", "MOTP", "MODA", "sMOTA", "CLR_Re", "CLR_Pr", "MTR", "PTR", "MLR")
 CLEAR_COUNTS = ("CLR_TP", "CLR_FN", "CLR_FP", "IDSW", "MT", "PT", "ML", "Frag")
 ID_FIELDS = ("IDF1", "IDP", "IDR", "IDTP", "IDFN", "IDFP")
+# per sequence (the official code leaves MTR/MLR of a sequence without ground truth unset)
+SEQUENCE_FIELDS = (
+    "HOTA",
+    "DetA",
+    "AssA",
+    "LocA",
+    "MOTA",
+    "MOTP",
+    "IDF1",
+    "IDSW",
+    "Frag",
+    "MT",
+    "ML",
+)
 
 
 def import_trackeval(checkout: str | None):
@@ -95,16 +109,23 @@ def run_case(trackeval, name: str, work: Path) -> dict:
         trackeval.metrics.Identity({**quiet, "THRESHOLD": 0.5}),
     ]
     res, _ = evaluator.evaluate([dataset], metrics)
-    combined = res["Kitti2DBox"]["t"]["COMBINED_SEQ"]
+    per_seq = res["Kitti2DBox"]["t"]
     out = {}
     for cls in ("car", "pedestrian"):
-        r = combined[cls]
-        fig = {k: float(np.mean(r["HOTA"][k])) for k in HOTA_FIELDS}
-        fig.update({k: float(r["HOTA"][k]) for k in HOTA_SCALARS})
-        fig.update({k: float(r["CLEAR"][k]) for k in CLEAR_FIELDS + CLEAR_COUNTS})
-        fig.update({k: float(r["Identity"][k]) for k in ID_FIELDS})
-        out[cls] = fig
+        out[cls] = figures(per_seq["COMBINED_SEQ"][cls])
+        out[cls]["sequences"] = {
+            seq: {k: v for k, v in figures(per_seq[seq][cls]).items() if k in SEQUENCE_FIELDS}
+            for seq in frames
+        }
     return out
+
+
+def figures(r: dict) -> dict:
+    fig = {k: float(np.mean(r["HOTA"][k])) for k in HOTA_FIELDS}
+    fig.update({k: float(r["HOTA"][k]) for k in HOTA_SCALARS})
+    fig.update({k: float(r["CLEAR"][k]) for k in CLEAR_FIELDS + CLEAR_COUNTS})
+    fig.update({k: float(r["Identity"][k]) for k in ID_FIELDS})
+    return fig
 
 
 def main(argv=None) -> int:

@@ -35,8 +35,18 @@ def test_equals_official_trackeval(case, tmp_path):
     result = _evaluate_case(case, tmp_path, with_3d=False)
     for cls in ("car", "pedestrian"):
         for key, value in official[cls].items():
+            if key == "sequences":
+                continue
             mine = result[cls][OFFICIAL_NAMES.get(key, key)]
             assert mine == pytest.approx(value, rel=1e-12, abs=1e-12), (case, cls, key)
+        assert set(result[cls]["sequences"]) == set(official[cls]["sequences"])
+        for seq, figures in official[cls]["sequences"].items():
+            for key, value in figures.items():
+                mine = result[cls]["sequences"][seq][key]
+                if mine is None:  # MOTA without ground truth: undefined (the official prints 0)
+                    assert key == "MOTA" and value == 0 and figures["ML"] + figures["MT"] == 0
+                    continue
+                assert mine == pytest.approx(value, rel=1e-12, abs=1e-12), (case, cls, seq, key)
 
 
 def test_hand_case_counts_by_hand(tmp_path):
@@ -92,36 +102,36 @@ def test_samota_amota_amotp_by_hand(tmp_path):
     assert smota(fn=60, fp=0, idsw=0, n_gt=100, recall=0.5) == pytest.approx(0.8)
 
 
-def test_velocity_error_by_hand(tmp_path):
-    """The ego drives 0.5 m/frame forward, the car 1 m/frame (10 m/s over the ground at
-    10 Hz); the tracker's depth drifts 0.2 m/frame more, i.e. 2 m/s too fast."""
-    (tmp_path / "label_02").mkdir()
-    (tmp_path / "results").mkdir()
-    (tmp_path / "poses").mkdir()
-    n = 6
+def _moving_car(root: Path, out: Path, n: int = 6) -> np.ndarray:
+    """A clip set ``root/training`` (labels, poses) and tracker output ``out/tracking``: the
+    ego drives 0.5 m/frame forward, the car 1 m/frame (10 m/s over the ground at 10 Hz); the
+    tracker's depth drifts 0.2 m/frame more, i.e. 2 m/s too fast. Returns the poses."""
+    for d in (root / "training/label_02", root / "training/poses", out / "tracking"):
+        d.mkdir(parents=True)
     poses = np.zeros((n, 3, 4))
     poses[:, :, :3] = np.eye(3)
     poses[:, 2, 3] = 0.5 * np.arange(n)
-    (tmp_path / "poses/0000.txt").write_text(format_poses(poses))
+    (root / "training/poses/0000.txt").write_text(format_poses(poses))
     cam_z = [15.0 + 1.0 * k - 0.5 * k for k in range(n)]
-    (tmp_path / "label_02/0000.txt").write_text(
-        "".join(_box_line(k, 0, cam_z[k]) for k in range(n))
-    )
-    (tmp_path / "results/0000.txt").write_text(
-        "".join(_box_line(k, 7, cam_z[k] + 0.2 * k, score=0.9) for k in range(n))
-    )
-    seqs = load_tracking_folders(
-        tmp_path / "label_02", tmp_path / "results", None, tmp_path / "poses"
-    )
-    labels = read_tracking_file(tmp_path / "label_02/0000.txt")
-    np.testing.assert_allclose(row_velocities(labels, 10.0, poses), [[0.0, 10.0]] * n, atol=1e-9)
+    labels = "".join(_box_line(k, 0, cam_z[k]) for k in range(n))
+    (root / "training/label_02/0000.txt").write_text(labels)
+    results = "".join(_box_line(k, 7, cam_z[k] + 0.2 * k, score=0.9) for k in range(n))
+    (out / "tracking/0000.txt").write_text(results)
+    return poses
+
+
+def test_velocity_error_by_hand(tmp_path):
+    poses = _moving_car(tmp_path / "clips", tmp_path / "out")
+    labels, results = tmp_path / "clips/training/label_02", tmp_path / "out/tracking"
+    seqs = load_tracking_folders(labels, results, None, tmp_path / "clips/training/poses")
+    gt_rows = read_tracking_file(labels / "0000.txt")
+    np.testing.assert_allclose(row_velocities(gt_rows, 10.0, poses), [[0.0, 10.0]] * 6, atol=1e-9)
     vel = evaluate_tracking(seqs, ("car",))["car"]["velocity"]
     assert vel["frame"] == "world"
-    assert vel["pairs"] == n
+    assert vel["pairs"] == 6
     assert vel["mean"] == pytest.approx(2.0) and vel["median"] == pytest.approx(2.0)
     # without poses: relative velocities (5 and 7 m/s), the same 2 m/s error
-    seqs = load_tracking_folders(tmp_path / "label_02", tmp_path / "results")
-    vel = evaluate_tracking(seqs, ("car",))["car"]["velocity"]
+    vel = evaluate_tracking(load_tracking_folders(labels, results), ("car",))["car"]["velocity"]
     assert vel["frame"] == "camera" and vel["mean"] == pytest.approx(2.0)
 
 
@@ -161,6 +171,22 @@ def test_cli_prints_table_and_writes_json(tmp_path, capsys):
     assert result["_meta"]["sequences"] == ["0000", "0001", "0002"]
     code, out, _ = _run([*argv[:-2], "--classes", "pedestrian"], capsys)
     assert code == 0 and "Car " not in out and "Pedestrian " in out
+
+
+def test_cli_clip_set_and_stream_output_folder(tmp_path, capsys):
+    """--data finds label_02 and poses; a predict --track output folder is read as it is."""
+    _moving_car(tmp_path / "clips", tmp_path / "out")
+    out_json = tmp_path / "r.json"
+    argv = ["--task", "track", "--data", tmp_path / "clips", "--result-dir", tmp_path / "out"]
+    code, out, err = _run([*argv, "--classes", "car", "--json", out_json], capsys)
+    assert code == 0, err
+    assert "poses for 1" in out
+    result = json.loads(out_json.read_text())
+    assert result["car"]["velocity"]["frame"] == "world"
+    assert result["car"]["IDF1"] == 1.0 and result["_meta"]["result_dir"].endswith("tracking")
+    with pytest.raises(SystemExit) as exit_info:
+        _run([*argv, "--frame-rate", "0"], capsys)
+    assert exit_info.value.code == 2 and "--frame-rate" in capsys.readouterr().err
 
 
 def _assert_one_line(code, err, *needles):

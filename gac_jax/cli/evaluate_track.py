@@ -7,7 +7,9 @@
                                                                      # or a generated clip set
 
 Result files are ``R/SSSS.txt``, one line per tracked object per frame: the 17 label
-columns (``frame id type trunc occ alpha x1 y1 x2 y2 h w l x y z ry``) and a score. A
+columns (``frame id type trunc occ alpha x1 y1 x2 y2 h w l x y z ry``) and a score; the
+output folder of ``python -m gac_jax.cli.predict ... --track`` (results in ``OUT/tracking``)
+may be given as it is. A
 labelled sequence without a result file has no tracker boxes. Poses (``poses/SSSS.txt``,
 found beside ``label_02`` unless ``--poses-dir`` says where) make the velocity error one
 over the ground; without, it is relative to the camera.
@@ -50,6 +52,15 @@ def reject_track_arguments(args, parser) -> None:
         parser.error(f"--{given[0].replace('_', '-')} only applies to --task track")
 
 
+def stream_results(result_dir: Path) -> Path:
+    """``result_dir``, or its ``tracking/`` folder when it is the output folder of a
+    ``predict ... --track`` run (no ``SSSS.txt`` of its own)."""
+    inner = result_dir / "tracking"
+    if inner.is_dir() and not any(p.stem.isdigit() for p in result_dir.glob("*.txt")):
+        return inner
+    return result_dir
+
+
 def run(args, parser) -> dict:
     """Scores the folders of ``args``, prints the table; returns the result dict."""
     if args.workdir:
@@ -75,7 +86,8 @@ def run(args, parser) -> dict:
     if not frame_rate > 0:
         parser.error(f"--frame-rate must be positive, got {args.frame_rate}")
     sequences = [s.strip() for s in args.sequences.split(",")] if args.sequences else None
-    seqs = load_tracking_folders(label_dir, args.result_dir, sequences, poses_dir)
+    result_dir = stream_results(Path(args.result_dir))
+    seqs = load_tracking_folders(label_dir, result_dir, sequences, poses_dir)
     result = evaluate_tracking(seqs, classes, frame_rate)
     n_frames = sum(s.n_frames for s in seqs)
     n_res = sum(len(s.results) for s in seqs)
@@ -83,7 +95,7 @@ def run(args, parser) -> dict:
     with_poses = sum(s.poses is not None for s in seqs)
     print(
         f"{len(seqs)} sequences, {n_frames} frames, {n_res} result lines "
-        f"({args.result_dir} vs {label_dir}); {missing} sequences without a result file "
+        f"({result_dir} vs {label_dir}); {missing} sequences without a result file "
         f"(scored as no boxes); poses for {with_poses}"
     )
     print(format_tracking_table(result), end="")
@@ -95,6 +107,6 @@ def run(args, parser) -> dict:
         "sequences_with_poses": with_poses,
         "frame_rate": frame_rate,
         "label_dir": str(label_dir),
-        "result_dir": str(args.result_dir),
+        "result_dir": str(result_dir),
     }
     return result

@@ -110,6 +110,36 @@ def _sum(dicts: list[dict], keys) -> dict[str, float]:
     return {k: float(sum(d[k] for d in dicts)) for k in keys}
 
 
+SEQUENCE_FIELDS = (
+    "HOTA",
+    "DetA",
+    "AssA",
+    "LocA",
+    "MOTA",
+    "MOTP",
+    "IDF1",
+    "IDSW",
+    "Frag",
+    "MT",
+    "ML",
+)
+
+
+def _figures(hota: dict, clear: dict, ident: dict) -> dict:
+    out = hota_metrics(hota)
+    out.update(clear_metrics(clear))
+    out.update(identity_metrics(ident))
+    return out
+
+
+def _sequence_figures(hota: dict, clear: dict, ident: dict) -> dict:
+    """``SEQUENCE_FIELDS`` of one sequence; MOTA is None (undefined) without ground truth."""
+    out = {k: v for k, v in _figures(hota, clear, ident).items() if k in SEQUENCE_FIELDS}
+    if clear["TP"] + clear["FN"] == 0:
+        out["MOTA"] = None
+    return out
+
+
 def has_3d(sequences: Sequence[TrackingSequence], cls_names: Sequence[str]) -> bool:
     """True when the ground truth and the results of the classes carry 3D boxes."""
     for attr in ("labels", "results"):
@@ -131,8 +161,10 @@ def evaluate_tracking(
     Returns:
       ``{cls: {HOTA, DetA, AssA, LocA, DetRe, DetPr, AssRe, AssPr, HOTA(0), LocA(0), MOTA,
       MOTP, MODA, sMOTA, CLR_Re, CLR_Pr, CLR_F1, MTR, PTR, MLR, TP, FN, FP, IDSW, MT, PT, ML,
-      Frag, IDF1, IDP, IDR, IDTP, IDFN, IDFP, curves, mot3d, velocity}}`` for each class
-      (``"car"``, ``"pedestrian"``), figures in [0, 1] (MOTA may be negative). ``mot3d``:
+      Frag, IDF1, IDP, IDR, IDTP, IDFN, IDFP, curves, sequences, mot3d, velocity}}`` for each class
+      (``"car"``, ``"pedestrian"``), figures in [0, 1] (MOTA may be negative). ``curves``:
+      the HOTA figures at each alpha; ``sequences``: ``{SSSS: SEQUENCE_FIELDS}`` (MOTA None
+      for a sequence without ground truth of the class). ``mot3d``:
       ``{"0.25": {sAMOTA, AMOTA, AMOTP, MOTA, thresholds}, "0.50": {...}}`` or None without
       3D boxes; ``velocity``: :class:`VelocityErrors` as a dict, or None.
     """
@@ -149,9 +181,11 @@ def evaluate_tracking(
             cs.append(clear_counts(seq, matched))
             ids.append(identity_counts(seq))
             per_seq.append((s, seq, matched))
-        res = hota_metrics(combine_hota(hs))
-        res.update(clear_metrics(_sum(cs, CLEAR_COUNTS)))
-        res.update(identity_metrics(_sum(ids, ID_COUNTS)))
+        res = _figures(combine_hota(hs), _sum(cs, CLEAR_COUNTS), _sum(ids, ID_COUNTS))
+        res["sequences"] = {
+            s.name: _sequence_figures(h, c, i)
+            for s, h, c, i in zip(sequences, hs, cs, ids, strict=True)
+        }
         use_3d = has_3d(sequences, (cls,)) if with_3d is None else with_3d
         res["mot3d"] = (
             {f"{iou:.2f}": mot3d_metrics(sequences, cls, iou) for iou in MOT3D_IOUS}
