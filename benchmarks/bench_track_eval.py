@@ -7,7 +7,7 @@ switches and false positives, with scores. Written to a temporary folder, then r
 scored as ``evaluate.py --task track`` does (HOTA, CLEAR, IDF1 for Car and Pedestrian; then
 with the 3D MOT block: sAMOTA/AMOTA/AMOTP at 3D IoU 0.25 and 0.5, and the velocity error).
 
-    python benchmarks/bench_track_eval.py [--sequences 21] [--frames 380] [--repeats 3]
+    python benchmarks/bench_track_eval.py [--sequences 21] [--frames 380] [--repeats 3] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -113,9 +113,10 @@ def main(argv=None) -> int:
     parser.add_argument("--sequences", type=int, default=21)
     parser.add_argument("--frames", type=int, default=380)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--keep", metavar="DIR", help="write the set to DIR (new) and keep it")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp)
+        root = Path(args.keep or tmp)
         n_gt = generate(root, args.sequences, args.frames)
         times = {"read": [], "2D (HOTA, CLEAR, IDF1)": [], "with 3D MOT + velocity": []}
         for _ in range(args.repeats):
