@@ -157,6 +157,43 @@ def _overlapping(seed: int, n_frames: int):
     return {"0000": gt_rows}, {"0000": tr_rows}
 
 
+def clean_3d_lines(seed: int = 5, n_frames: int = 20) -> tuple[dict, dict]:
+    """Label and result *lines* of one sequence for the 3D MOT metrics: three cars with 3D
+    boxes (BEV noise only), tracked with an id switch (no gap), a late start and scored
+    tracks, and low-scored false-positive tracks. Nothing is ignored, no track has a gap
+    after it starts and no frame has two candidate matches, so the older KITTI devkit code
+    AB3DMOT's script builds on and the CLEAR matching here count the same."""
+    rng = np.random.default_rng(seed)
+    gt, res = [], []
+    cars = [(-4.0, 12.0, 0.3), (0.5, 20.0, -0.2), (5.0, 30.0, 0.4)]  # x, z, z-speed per frame
+    for f in range(n_frames):
+        for k, (x, z0, vz) in enumerate(cars):
+            z = z0 + vz * f
+            u, half = 600 + 700 * x / z, 700 * 0.8 / z
+            box2d = (
+                f"{u - half:.2f} {170 - 700 * 0.1 / z:.2f} {u + half:.2f} {170 + 700 * 1.6 / z:.2f}"
+            )
+            gt.append(f"{f} {k} Car 0 0 0 {box2d} 1.50 1.60 3.90 {x:.4f} 1.6000 {z:.4f} 0.1000\n")
+            if k == 2 and f < 4:  # car 2 is found late
+                continue
+            tid = {0: 1, 1: 2 if f < 11 else 3, 2: 4}[k]  # car 1 switches from track 2 to 3
+            score = {1: 0.9, 2: 0.7, 3: 0.55, 4: 0.4}[tid] + 0.01 * rng.random()
+            dx, dz = rng.normal(0, 0.15 + 0.15 * k, 2)
+            res.append(
+                f"{f} {tid} Car 0 0 0 {box2d} 1.50 1.60 3.90 {x + dx:.4f} 1.6000 {z + dz:.4f} "
+                f"0.1000 {score:.4f}\n"
+            )
+        if f % 4 == 0:  # a short false-positive track far from the cars
+            tid = 100 + f
+            for g in range(f, min(f + 2, n_frames)):
+                res.append(
+                    f"{g} {tid} Car 0 0 0 100.00 150.00 160.00 200.00 1.50 1.60 3.90 "
+                    f"-9.0000 1.6000 {45 + g:.4f} 0.1000 {0.1 + 0.01 * f:.4f}\n"
+                )
+    res.sort(key=lambda line: int(line.split()[0]))
+    return {"0000": gt}, {"0000": res}
+
+
 CASES = ("hand", "generated_1", "generated_2", "crowded", "overlapping")
 
 

@@ -75,12 +75,12 @@ def smota(fn: float, fp: float, idsw: float, n_gt: float, recall: float) -> floa
     return float(min(1.0, max(0.0, value)))
 
 
-def _counts(prepared, keeps=None) -> dict[str, float]:
+def _counts(prepared, iou: float, keeps=None) -> dict[str, float]:
     total = dict.fromkeys(("TP", "FN", "FP", "IDSW", "MOTP_sum"), 0.0)
     for i, seq in enumerate(prepared):
         if keeps is not None:
             seq = subset_trackers(seq, keeps[i])
-        counts = clear_counts(seq, clear_match(seq))
+        counts = clear_counts(seq, clear_match(seq, iou))
         for k in total:
             total[k] += counts[k]
     return total
@@ -102,14 +102,14 @@ def mot3d_metrics(sequences, cls: str, iou: float) -> dict:
         matched = clear_match(seq, iou)
         tp_scores.append(sc[seq.pair_tr[matched]])
         n_gt += seq.gt_frame.size
-    all_tracks = _counts(prepared)
+    all_tracks = _counts(prepared, iou)
     gt = max(1.0, all_tracks["TP"] + all_tracks["FN"])
     mota_all = (all_tracks["TP"] - all_tracks["FP"] - all_tracks["IDSW"]) / gt
     thresholds = get_thresholds(np.concatenate(tp_scores), int(n_gt))[1:] if n_gt else []
     s_sum = a_sum = p_sum = 0.0
     for k, threshold in enumerate(thresholds, start=1):
         recall = k / RECALL_STEPS
-        c = _counts(prepared, [sc >= threshold for sc in scores])
+        c = _counts(prepared, iou, [sc >= threshold for sc in scores])
         s_sum += smota(c["FN"], c["FP"], c["IDSW"], n_gt, recall)
         a_sum += (c["TP"] - c["FP"] - c["IDSW"]) / max(1.0, n_gt)
         p_sum += c["MOTP_sum"] / max(1.0, c["TP"])
