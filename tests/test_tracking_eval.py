@@ -205,6 +205,26 @@ def test_cli_clip_set_and_stream_output_folder(tmp_path, capsys):
     assert exit_info.value.code == 2 and "--frame-rate" in capsys.readouterr().err
 
 
+def test_cli_2d_only_results_and_empty_sequence(tmp_path, capsys):
+    """Results without 3D boxes: no 3D block; a sequence with neither labels nor results."""
+    tracking_cases.write_case("hand", tmp_path)
+    for path in (tmp_path / "results").glob("*.txt"):
+        lines = [f.split() for f in path.read_text().splitlines()]
+        flat = [f[:10] + ["-1", "-1", "-1", "-1000", "-1000", "-1000", "-10", f[17]] for f in lines]
+        path.write_text("".join(" ".join(f) + "\n" for f in flat))
+    (tmp_path / "label_02" / "0003.txt").write_text("")
+    out_json = tmp_path / "out.json"
+    argv = ["--task", "track", "--label-dir", tmp_path / "label_02"]
+    code, out, err = _run([*argv, "--result-dir", tmp_path / "results", "--json", out_json], capsys)
+    assert code == 0, err
+    assert "sAMOTA" not in out and "1 sequences without a result file" in out
+    result = json.loads(out_json.read_text())
+    assert result["car"]["mot3d"] is None and result["car"]["velocity"] is None
+    official = json.loads(FIXTURE.read_text())["hand"]["car"]
+    assert result["car"]["HOTA"] == pytest.approx(official["HOTA"], rel=1e-12)
+    assert result["car"]["sequences"]["0003"]["MOTA"] is None
+
+
 def _assert_one_line(code, err, *needles):
     assert code == 2, err
     lines = err.strip().splitlines()

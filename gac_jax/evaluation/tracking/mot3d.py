@@ -125,8 +125,8 @@ def mot3d_metrics(sequences, cls: str, iou: float) -> dict:
 def row_velocities(
     rows: TrackRows, frame_rate: float, poses: np.ndarray | None = None
 ) -> np.ndarray:
-    """(N, 2) BEV velocity ``(vx, vz)`` (m/s) of each row from its track's neighbours
-    (NaN for rows without a 3D box, a negative id, or a track of one frame)."""
+    """(N, 2) BEV velocity ``(vx, vz)`` (m/s) of each row from its track's (id and class)
+    neighbours (NaN for rows without a 3D box, a negative id, or a track of one frame)."""
     pos = rows.location.copy()
     if poses is not None:
         pose = poses[rows.frame]
@@ -134,8 +134,11 @@ def row_velocities(
     bev = pos[:, [0, 2]]
     out = np.full((len(rows), 2), np.nan)
     ok = np.flatnonzero(rows.has_3d() & (rows.track_id >= 0))
-    order = ok[np.lexsort((rows.frame[ok], rows.track_id[ok]))]
-    tid, frame, p = rows.track_id[order], rows.frame[order], bev[order]
+    # a track is an id of one class (trackers may number each class on its own)
+    _, type_code = np.unique(rows.type, return_inverse=True)
+    track = rows.track_id * (int(type_code.max(initial=0)) + 1) + type_code
+    order = ok[np.lexsort((rows.frame[ok], track[ok]))]
+    tid, frame, p = track[order], rows.frame[order], bev[order]
     has_prev = np.zeros(order.size, bool)
     has_next = np.zeros(order.size, bool)
     link = (tid[1:] == tid[:-1]) & (frame[1:] == frame[:-1] + 1)
