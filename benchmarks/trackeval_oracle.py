@@ -26,29 +26,18 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))
+sys.path[:0] = [str(REPO / "tests"), str(REPO)]
 
 import tracking_cases  # noqa: E402
+
+# per sequence (the official code leaves MTR/MLR of a sequence without ground truth unset)
+from gac_jax.evaluation.tracking.evaluator import SEQUENCE_FIELDS  # noqa: E402
 
 HOTA_FIELDS = ("HOTA", "DetA", "AssA", "DetRe", "DetPr", "AssRe", "AssPr", "LocA")
 HOTA_SCALARS = ("HOTA(0)", "LocA(0)")
 CLEAR_FIELDS = ("MOTA", "MOTP", "MODA", "sMOTA", "CLR_Re", "CLR_Pr", "MTR", "PTR", "MLR")
 CLEAR_COUNTS = ("CLR_TP", "CLR_FN", "CLR_FP", "IDSW", "MT", "PT", "ML", "Frag")
 ID_FIELDS = ("IDF1", "IDP", "IDR", "IDTP", "IDFN", "IDFP")
-# per sequence (the official code leaves MTR/MLR of a sequence without ground truth unset)
-SEQUENCE_FIELDS = (
-    "HOTA",
-    "DetA",
-    "AssA",
-    "LocA",
-    "MOTA",
-    "MOTP",
-    "IDF1",
-    "IDSW",
-    "Frag",
-    "MT",
-    "ML",
-)
 
 
 def import_trackeval(checkout: str | None):

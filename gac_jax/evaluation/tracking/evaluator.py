@@ -110,19 +110,9 @@ def _sum(dicts: list[dict], keys) -> dict[str, float]:
     return {k: float(sum(d[k] for d in dicts)) for k in keys}
 
 
-SEQUENCE_FIELDS = (
-    "HOTA",
-    "DetA",
-    "AssA",
-    "LocA",
-    "MOTA",
-    "MOTP",
-    "IDF1",
-    "IDSW",
-    "Frag",
-    "MT",
-    "ML",
-)
+# the columns of the printed table, and the figures of each sequence in the result dict
+SEQUENCE_FIELDS = ("HOTA", "DetA", "AssA", "LocA", "MOTA", "MOTP", "IDF1")
+SEQUENCE_FIELDS += ("IDSW", "Frag", "MT", "ML")
 
 
 def _figures(hota: dict, clear: dict, ident: dict) -> dict:
@@ -201,7 +191,7 @@ def evaluate_tracking(
 def format_tracking_table(result: dict) -> str:
     """The KITTI tracking table (percent, as the benchmark prints it) of
     :func:`evaluate_tracking`'s result."""
-    head = ("HOTA", "DetA", "AssA", "LocA", "MOTA", "MOTP", "IDF1", "IDSW", "Frag", "MT", "ML")
+    head = SEQUENCE_FIELDS
     lines = [f"{'class':<11}" + "".join(f"{h:>8}" for h in head)]
     for cls, r in result.items():
         cells = [f"{100 * r[k]:8.2f}" for k in head[:7]]
