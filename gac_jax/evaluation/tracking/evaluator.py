@@ -28,7 +28,7 @@ from gac_jax.evaluation.tracking.clear import (
 from gac_jax.evaluation.tracking.hota import combine_hota, hota_metrics, hota_sums
 from gac_jax.evaluation.tracking.identity import COUNT_FIELDS as ID_COUNTS
 from gac_jax.evaluation.tracking.identity import identity_counts, identity_metrics
-from gac_jax.evaluation.tracking.kitti_rules import TRACKING_CLASSES, prepare_class
+from gac_jax.evaluation.tracking.kitti_rules import CLASS_NAMES, TRACKING_CLASSES, prepare_class
 from gac_jax.evaluation.tracking.mot3d import (
     MOT3D_IOUS,
     VelocityErrors,
@@ -162,10 +162,8 @@ def evaluate_tracking(
     for cls in classes:
         hs, cs, ids, per_seq = [], [], [], []
         for s in sequences:
-            seq = prepare_class(
-                s.labels, s.results, cls, s.n_frames, label_path=s.label_path,
-                result_path=s.result_path,
-            )  # fmt: skip
+            paths = {"label_path": s.label_path, "result_path": s.result_path}
+            seq = prepare_class(s.labels, s.results, cls, s.n_frames, **paths)
             matched = clear_match(seq)
             hs.append(hota_sums(seq))
             cs.append(clear_counts(seq, matched))
@@ -176,7 +174,7 @@ def evaluate_tracking(
             s.name: _sequence_figures(h, c, i)
             for s, h, c, i in zip(sequences, hs, cs, ids, strict=True)
         }
-        use_3d = has_3d(sequences, (cls,)) if with_3d is None else with_3d
+        use_3d = has_3d(sequences, CLASS_NAMES[cls]) if with_3d is None else with_3d
         res["mot3d"] = (
             {f"{iou:.2f}": mot3d_metrics(sequences, cls, iou) for iou in MOT3D_IOUS}
             if use_3d
