@@ -6,6 +6,8 @@
         gac_jax/cli/evaluate_detector.py
     python evaluate.py --task depth --workdir W [--data DIR] [--split S] [--step N] [--out DIR]
     python evaluate.py --task depth --baseline {ground-plane,row-mean} (--data DIR | --workdir W)
+    python evaluate.py --task track --label-dir L --result-dir R [--classes car,pedestrian] ...
+        # KITTI tracking: HOTA, CLEAR MOT, IDF1, sAMOTA; see gac_jax/cli/evaluate_track.py
 
 The offline scorers are plain functions returning the result dict
 (:func:`evaluate_detection_folders`, :func:`evaluate_depth_folders`); a mode that
@@ -26,6 +28,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from gac_jax.cli import evaluate_track
+from gac_jax.cli.evaluate_track import add_track_arguments, reject_track_arguments
 from gac_jax.cli.model_mode import add_model_mode_arguments, reject_model_mode_arguments
 from gac_jax.data.files import KittiFormatError, atomic_write, read_depth_png
 from gac_jax.data.io_errors import error_line, exit_code
@@ -148,19 +152,24 @@ def _write_json(path: str | os.PathLike, payload: dict) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="evaluate.py",
-        description="KITTI evaluation: 3D object detection AP (2D/BEV/3D/AOS, R11 and R40) "
-        "or depth prediction metrics, from files on disk.",
+        description="KITTI evaluation: 3D object detection AP (2D/BEV/3D/AOS, R11 and R40), "
+        "depth prediction metrics, or tracking (HOTA, CLEAR MOT, IDF1, 3D MOT), from files "
+        "on disk.",
     )
-    parser.add_argument("--task", required=True, choices=("detect3d", "depth"))
+    parser.add_argument("--task", required=True, choices=("detect3d", "depth", "track"))
     parser.add_argument("--json", metavar="OUT", help="also write the result dict as JSON")
     det = parser.add_argument_group("--task detect3d")
-    det.add_argument("--label-dir", help="folder of KITTI label files NNNNNN.txt (label_2)")
-    det.add_argument("--result-dir", help="folder of result files NNNNNN.txt (16 columns)")
+    det.add_argument(
+        "--label-dir", help="folder of KITTI label files NNNNNN.txt (label_2; track: label_02)"
+    )
+    det.add_argument(
+        "--result-dir", help="folder of result files NNNNNN.txt (16 columns; track: SSSS.txt)"
+    )
     det.add_argument("--split-file", help="frame ids to evaluate (default: every label file)")
     det.add_argument(
         "--classes",
-        default=",".join(CLASSES),
-        help="comma-separated subset of Car,Pedestrian,Cyclist (default: all three)",
+        help="comma-separated subset of Car,Pedestrian,Cyclist (default: all three; "
+        "--task track: of car,pedestrian, default both)",
     )
     det.add_argument(
         "--require-all",
@@ -179,6 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="score a no-learning baseline (row-mean: fitted on the train split of the data)",
     )
     dep.add_argument("--out", help="folder for the predicted 16-bit PNGs")
+    add_track_arguments(parser)
     add_model_mode_arguments(parser)
     return parser
 
@@ -193,7 +203,7 @@ def _run_detect3d(args, parser) -> dict:
     reject_model_mode_arguments(args, parser)
     if not args.label_dir or not args.result_dir:
         parser.error("--task detect3d needs --label-dir and --result-dir")
-    classes = tuple(c.strip() for c in args.classes.split(",") if c.strip())
+    classes = tuple(c.strip() for c in (args.classes or ",".join(CLASSES)).split(",") if c.strip())
     unknown = [c for c in classes if c not in CLASSES]
     if unknown or not classes:
         parser.error(f"--classes must be a subset of {','.join(CLASSES)}, got {args.classes!r}")
@@ -247,7 +257,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     input or workdir in use)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    runners = {"detect3d": _run_detect3d, "depth": _run_depth}
+    if args.task != "track":
+        reject_track_arguments(args, parser)
+    runners = {"detect3d": _run_detect3d, "depth": _run_depth, "track": evaluate_track.run}
     try:
         result = runners[args.task](args, parser)
         if args.json:

@@ -121,7 +121,7 @@ def average_precision(curve: np.ndarray, points: int) -> float:
     raise ValueError(f"points must be 11 or 40, got {points}")
 
 
-def _same_frame_pairs(frame_a: np.ndarray, frame_b: np.ndarray, n_frames: int):
+def same_frame_pairs(frame_a: np.ndarray, frame_b: np.ndarray, n_frames: int):
     """Pairs (i, j) with ``frame_a[i] == frame_b[j]`` (both sorted), ordered by frame, i, j."""
     ca = np.bincount(frame_a, minlength=n_frames)
     cb = np.bincount(frame_b, minlength=n_frames)
@@ -213,7 +213,7 @@ class DetectionEvalSet:
         """Same-frame (gt, detection) pairs with positive overlap: (gt_idx, dt_idx, overlap)."""
         if metric not in self._pairs:
             sub = np.flatnonzero(np.isin(self.gt_type, _GT_TYPES))
-            i, j = _same_frame_pairs(self.gt_frame[sub], self.dt_frame, self.num_frames)
+            i, j = same_frame_pairs(self.gt_frame[sub], self.dt_frame, self.num_frames)
             ig = sub[i]
             ov = self._overlaps(metric, ig, j, -1)
             keep = ov > 0
@@ -224,7 +224,7 @@ class DetectionEvalSet:
         """(num_detections,) largest overlap with a DontCare region, by detection area."""
         if metric not in self._dontcare:
             sub = np.flatnonzero(self.gt_type == "dontcare")
-            i, j = _same_frame_pairs(self.gt_frame[sub], self.dt_frame, self.num_frames)
+            i, j = same_frame_pairs(self.gt_frame[sub], self.dt_frame, self.num_frames)
             best = np.zeros(len(self.dt_frame), dtype=np.float64)
             if j.size:
                 np.maximum.at(best, j, self._overlaps(metric, sub[i], j, 0))

@@ -1,0 +1,217 @@
+"""KITTI tracking evaluation of result folders: HOTA, CLEAR MOT, IDF1 and the 3D MOT block.
+
+:func:`load_tracking_folders` reads a ``label_02`` folder and a folder of result files
+(``SSSS.txt``, the label columns plus a score), with the poses of each sequence when there
+are; :func:`evaluate_tracking` scores them per class and :func:`format_tracking_table`
+prints the table.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from gac_jax.data.files import KittiFormatError, read_bytes
+from gac_jax.data.kitti_tracking import parse_poses
+from gac_jax.evaluation.tracking.clear import (
+    COUNT_FIELDS as CLEAR_COUNTS,
+)
+from gac_jax.evaluation.tracking.clear import (
+    clear_counts,
+    clear_match,
+    clear_metrics,
+)
+from gac_jax.evaluation.tracking.hota import combine_hota, hota_metrics, hota_sums
+from gac_jax.evaluation.tracking.identity import COUNT_FIELDS as ID_COUNTS
+from gac_jax.evaluation.tracking.identity import identity_counts, identity_metrics
+from gac_jax.evaluation.tracking.kitti_rules import CLASS_NAMES, TRACKING_CLASSES, prepare_class
+from gac_jax.evaluation.tracking.mot3d import (
+    MOT3D_IOUS,
+    VelocityErrors,
+    mot3d_metrics,
+    velocity_errors,
+)
+from gac_jax.evaluation.tracking.tracking_files import (
+    TrackRows,
+    read_tracking_file,
+    sequence_files,
+)
+
+DEFAULT_FRAME_RATE = 10.0  # Hz, KITTI's
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingSequence:
+    """One sequence: its label and result rows, frame count, and poses ((n, 3, 4) or None)."""
+
+    name: str
+    labels: TrackRows
+    results: TrackRows
+    n_frames: int
+    label_path: Path
+    result_path: Path
+    poses: np.ndarray | None = None
+
+
+def load_tracking_folders(
+    label_dir: str | os.PathLike,
+    result_dir: str | os.PathLike,
+    sequences: Sequence[str] | None = None,
+    poses_dir: str | os.PathLike | None = None,
+) -> list[TrackingSequence]:
+    """Reads every labelled sequence (or ``sequences``) and its result file.
+
+    A labelled sequence without a result file has no tracker boxes. Raises
+    :class:`KittiFormatError` for a malformed file, a result file of a sequence without
+    labels, an unknown sequence in ``sequences``, or a frame beyond a sequence's poses.
+    """
+    labels = sequence_files(label_dir, "label")
+    if not labels:
+        raise KittiFormatError(label_dir, "no label files (SSSS.txt) found")
+    results = sequence_files(result_dir, "result")
+    orphans = sorted(set(results) - set(labels))
+    if orphans:
+        raise KittiFormatError(
+            results[orphans[0]], f"result file of sequence {orphans[0]}, which has no labels"
+        )
+    names = list(labels) if sequences is None else list(sequences)
+    for name in names:
+        if name not in labels:
+            raise KittiFormatError(
+                Path(label_dir) / f"{name}.txt", f"unknown sequence {name} (no label file)"
+            )
+    out = []
+    for name in names:
+        rows = read_tracking_file(labels[name])
+        result_path = Path(result_dir) / f"{name}.txt"
+        res = read_tracking_file(result_path, with_score=True) if name in results else None
+        if res is None:
+            res = rows.take(np.zeros(0, np.int64))
+        n_frames = int(max(rows.frame.max(initial=-1), res.frame.max(initial=-1))) + 1
+        poses = None
+        pose_path = Path(poses_dir) / f"{name}.txt" if poses_dir is not None else None
+        if pose_path is not None and pose_path.is_file():
+            poses = parse_poses(read_bytes(pose_path, "poses file").decode("utf-8", "replace"))
+            for path, r in ((labels[name], rows), (result_path, res)):
+                if len(r) and r.frame.max() >= len(poses):
+                    raise KittiFormatError(
+                        path, f"frame {r.frame.max()} beyond the {len(poses)} poses of {pose_path}"
+                    )
+            n_frames = max(n_frames, len(poses))
+        out.append(TrackingSequence(name, rows, res, n_frames, labels[name], result_path, poses))
+    return out
+
+
+def _sum(dicts: list[dict], keys) -> dict[str, float]:
+    return {k: float(sum(d[k] for d in dicts)) for k in keys}
+
+
+# the columns of the printed table, and the figures of each sequence in the result dict
+SEQUENCE_FIELDS = ("HOTA", "DetA", "AssA", "LocA", "MOTA", "MOTP", "IDF1")
+SEQUENCE_FIELDS += ("IDSW", "Frag", "MT", "ML")
+
+
+def _figures(hota: dict, clear: dict, ident: dict) -> dict:
+    out = hota_metrics(hota)
+    out.update(clear_metrics(clear))
+    out.update(identity_metrics(ident))
+    return out
+
+
+def _sequence_figures(hota: dict, clear: dict, ident: dict) -> dict:
+    """``SEQUENCE_FIELDS`` of one sequence; MOTA is None (undefined) without ground truth."""
+    out = {k: v for k, v in _figures(hota, clear, ident).items() if k in SEQUENCE_FIELDS}
+    if clear["TP"] + clear["FN"] == 0:
+        out["MOTA"] = None
+    return out
+
+
+def has_3d(sequences: Sequence[TrackingSequence], cls_names: Sequence[str]) -> bool:
+    """True when the ground truth and the results of the classes carry 3D boxes."""
+    for attr in ("labels", "results"):
+        rows = [getattr(s, attr) for s in sequences]
+        flags = np.concatenate([r.has_3d()[np.isin(r.type, cls_names)] for r in rows])
+        if flags.size and not flags.any():
+            return False
+    return True
+
+
+def evaluate_tracking(
+    sequences: Sequence[TrackingSequence],
+    classes: Sequence[str] = TRACKING_CLASSES,
+    frame_rate: float = DEFAULT_FRAME_RATE,
+    with_3d: bool | None = None,
+) -> dict:
+    """KITTI tracking figures per class.
+
+    Returns:
+      ``{cls: {HOTA, DetA, AssA, LocA, DetRe, DetPr, AssRe, AssPr, HOTA(0), LocA(0), MOTA,
+      MOTP, MODA, sMOTA, CLR_Re, CLR_Pr, CLR_F1, MTR, PTR, MLR, TP, FN, FP, IDSW, MT, PT, ML,
+      Frag, IDF1, IDP, IDR, IDTP, IDFN, IDFP, curves, sequences, mot3d, velocity}}`` for each class
+      (``"car"``, ``"pedestrian"``), figures in [0, 1] (MOTA may be negative). ``curves``:
+      the HOTA figures at each alpha; ``sequences``: ``{SSSS: SEQUENCE_FIELDS}`` (MOTA None
+      for a sequence without ground truth of the class). ``mot3d``:
+      ``{"0.25": {sAMOTA, AMOTA, AMOTP, MOTA, thresholds}, "0.50": {...}}`` or None without
+      3D boxes; ``velocity``: :class:`VelocityErrors` as a dict, or None.
+    """
+    out = {}
+    for cls in classes:
+        hs, cs, ids, per_seq = [], [], [], []
+        for s in sequences:
+            paths = {"label_path": s.label_path, "result_path": s.result_path}
+            seq = prepare_class(s.labels, s.results, cls, s.n_frames, **paths)
+            matched = clear_match(seq)
+            hs.append(hota_sums(seq))
+            cs.append(clear_counts(seq, matched))
+            ids.append(identity_counts(seq))
+            per_seq.append((s, seq, matched))
+        res = _figures(combine_hota(hs), _sum(cs, CLEAR_COUNTS), _sum(ids, ID_COUNTS))
+        res["sequences"] = {
+            s.name: _sequence_figures(h, c, i)
+            for s, h, c, i in zip(sequences, hs, cs, ids, strict=True)
+        }
+        use_3d = has_3d(sequences, CLASS_NAMES[cls]) if with_3d is None else with_3d
+        res["mot3d"] = (
+            {f"{iou:.2f}": mot3d_metrics(sequences, cls, iou) for iou in MOT3D_IOUS}
+            if use_3d
+            else None
+        )
+        vel = [velocity_errors(s, seq, m, frame_rate) for s, seq, m in per_seq] if use_3d else []
+        res["velocity"] = VelocityErrors.combine(vel).as_dict() if vel else None
+        out[cls] = res
+    return out
+
+
+def format_tracking_table(result: dict) -> str:
+    """The KITTI tracking table (percent, as the benchmark prints it) of
+    :func:`evaluate_tracking`'s result."""
+    head = SEQUENCE_FIELDS
+    lines = [f"{'class':<11}" + "".join(f"{h:>8}" for h in head)]
+    for cls, r in result.items():
+        cells = [f"{100 * r[k]:8.2f}" for k in head[:7]]
+        cells += [f"{r[k]:8d}" for k in ("IDSW", "Frag", "MT", "ML")]
+        lines.append(f"{cls.capitalize():<11}" + "".join(cells))
+    blocks = [(c, r["mot3d"]) for c, r in result.items() if r.get("mot3d")]
+    if blocks:
+        lines.append("")
+        lines.append(f"{'3D MOT':<11}{'IoU':>6}{'sAMOTA':>9}{'AMOTA':>9}{'AMOTP':>9}{'MOTA':>9}")
+        for cls, m in blocks:
+            for iou, v in m.items():
+                lines.append(
+                    f"{cls.capitalize():<11}{iou:>6}"
+                    + "".join(f"{100 * v[k]:9.2f}" for k in ("sAMOTA", "AMOTA", "AMOTP", "MOTA"))
+                )
+    vel = [(c, r["velocity"]) for c, r in result.items() if r.get("velocity")]
+    if vel:
+        lines.append("")
+        lines.append(f"{'velocity':<11}{'frame':>7}{'pairs':>8}{'mean m/s':>10}{'median':>8}")
+        for cls, v in vel:
+            lines.append(
+                f"{cls.capitalize():<11}{v['frame']:>7}{v['pairs']:>8d}"
+                f"{v['mean']:10.3f}{v['median']:8.3f}"
+            )
+    return "\n".join(lines) + "\n"
