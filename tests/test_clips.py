@@ -333,6 +333,11 @@ def test_ensure_clips_in_the_cache(tmp_path, monkeypatch, capsys):
     )
     assert ensure_clips(None, 1, 2, seed=3, workers=1) == where  # no-op, silent
     assert capsys.readouterr().err == ""
+    manifest = json.loads((where / DONE).read_text())
+    (where / DONE).write_text(json.dumps({**manifest, "format_version": 1}))  # an older one
+    assert ensure_clips(None, 1, 2, seed=3, workers=1) == where
+    assert "generating 2 frames" in capsys.readouterr().err
+    assert json.loads((where / DONE).read_text()) == manifest
 
 
 @pytest.mark.parametrize(

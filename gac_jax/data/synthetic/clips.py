@@ -48,9 +48,9 @@ DONE = "clips.json"
 MARKER = ".clips_in_progress.json"
 PARTIAL = ".clips_partial"
 OWNED = ("training", PARTIAL)
-# Seconds to render and write one 375x1242 clip frame in one process: 0.13 s CPU, 0.45 s
-# wall on a shared 2-core Xeon at load 11 (benchmarks/bench_clips.py); only for the time
-# estimate ensure_clips prints.
+# Seconds to render and write one 375x1242 clip frame of the default scenario mix: 0.15 s
+# CPU, 0.30 s wall in one process, 0.50 s in each of 2 processes, on a shared 2-core EPYC
+# at load 7.5 (benchmarks/bench_clips.py); only for the time estimate ensure_clips prints.
 SECONDS_PER_FRAME = 0.5
 
 
@@ -303,7 +303,8 @@ def ensure_clips(
 ) -> Path:
     """Returns ``out_dir`` (or :func:`default_clip_dir` when None) holding the clips,
     generating what is missing first (one line on stderr says what, where and about how
-    long; then a progress bar). KITTI-sized images (375x1242 at KITTI's rig).
+    long; then a progress bar). KITTI-sized images (375x1242 at KITTI's rig), the default
+    scenario mix. A cache folder made by an older generator is generated again.
 
     Raises:
       ValueError: bad arguments, or ``out_dir`` holds something else.
@@ -320,6 +321,7 @@ def ensure_clips(
         seed,
         rigs=rigs,
         workers=workers,
+        overwrite=out_dir is None,  # the cache: clips of an older generator are replaced
         progress=True,
         announce=lambda line: print(line, file=sys.stderr, flush=True),
     )
