@@ -190,6 +190,16 @@ def test_tracks_keep_ids_and_move_at_their_simulated_velocity(clips):
     assert checked >= 10
 
 
+def assert_one_world_plane(layout, seq, poses) -> None:
+    """Every frame's plane, moved into the world by its pose, is the same plane (the road)."""
+    world_planes = []
+    for k, pose in enumerate(poses):
+        plane = kitti.read_plane(layout.plane(seq, k))
+        n = pose[:, :3] @ plane[:3]
+        world_planes.append([*n, plane[3] - n @ pose[:, 3]])
+    np.testing.assert_allclose(world_planes, [world_planes[0]] * len(poses), atol=1e-9)
+
+
 def test_poses_advance_along_the_road_at_ego_speed(clips):
     layout = tracking.KittiTrackingLayout(clips)
     for s, seq in enumerate(layout.sequences()):
@@ -209,13 +219,7 @@ def test_poses_advance_along_the_road_at_ego_speed(clips):
         forward /= np.maximum(np.linalg.norm(forward, axis=1, keepdims=True), 1e-12)
         assert (forward[moving, 2] > np.cos(np.deg2rad(2.5))).all()
         assert drive.EGO_SPEED[0] <= ego.speed <= drive.EGO_SPEED[1]
-        # every frame's plane is the same plane of the world (the road)
-        world_planes = []
-        for k, pose in enumerate(poses):
-            plane = kitti.read_plane(layout.plane(seq, k))
-            n = pose[:, :3] @ plane[:3]
-            world_planes.append([*n, plane[3] - n @ pose[:, 3]])
-        np.testing.assert_allclose(world_planes, [world_planes[0]] * FRAMES, atol=1e-9)
+        assert_one_world_plane(layout, seq, poses)
         normals = np.array([kitti.read_plane(layout.plane(seq, k))[:3] for k in range(FRAMES)])
         assert np.ptp(normals[:, 2]) > 1e-5  # the camera pitches
         # labelled road users stand on the road (or a kerb up to 0.16 m above it)
