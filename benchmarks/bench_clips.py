@@ -1,12 +1,16 @@
 """Benchmark of driving-clip rendering: frames per second on this machine.
 
     python benchmarks/bench_clips.py [--sequences 1] [--frames 100] [--workers K] [--single 10]
+        [--scenarios default|all|none]
 
 Generates ``--sequences`` clips of ``--frames`` frames (left view, labels with track ids,
 planes, poses, PNG encodes) into a temporary directory with a process pool and reports
 frames/s, total seconds and the median per-frame time; then one short clip of ``--single``
 frames in this process alone (CPU and wall seconds per frame: the per-core cost, less
-sensitive to other load on the machine).
+sensitive to other load on the machine); and the median time to sample a sequence's world
+(road, roadside, road users and their motion over the clip) of ``--frames`` frames.
+``--scenarios``: the default mix, every scenario in every sequence, or none (straight
+roads, constant speeds).
 """
 
 from __future__ import annotations
@@ -25,7 +29,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from machine_info import describe_machine  # noqa: E402  (benchmarks/ is on sys.path)
 
+from gac_jax.data.synthetic import drive, traffic  # noqa: E402
 from gac_jax.data.synthetic.clips import generate_clips  # noqa: E402
+
+MIXES = {
+    "default": dict(traffic.DEFAULT_MIX),
+    "all": {name: 1.0 for name in traffic.SCENARIOS},
+    "none": {},
+}
 
 
 def main() -> None:
@@ -37,10 +48,14 @@ def main() -> None:
     p.add_argument("--rigs", default="kitti", choices=("kitti", "multi"))
     p.add_argument("--height", type=int, default=375)
     p.add_argument("--width", type=int, default=1242)
+    p.add_argument("--scenarios", default="default", choices=tuple(MIXES))
+    p.add_argument("--worlds", type=int, default=5, help="sequences' worlds sampled (0 = skip)")
     args = p.parse_args()
-    size = dict(height=args.height, width=args.width, rigs=args.rigs)
+    mix = MIXES[args.scenarios]
+    size = dict(height=args.height, width=args.width, rigs=args.rigs, scenarios=mix)
     report = {"machine": describe_machine("numpy", "cv2"), "image_size": [args.height, args.width]}
     report["rigs"] = args.rigs
+    report["scenarios"] = args.scenarios
     tmp = Path(tempfile.mkdtemp(prefix="bench_clips_"))
     try:
         if args.sequences > 0:
@@ -70,6 +85,20 @@ def main() -> None:
                 "cpu_s_per_frame": round((time.process_time() - cpu) / args.single, 4),
                 "wall_s_per_frame": round((time.perf_counter() - wall) / args.single, 4),
                 "median_frame_s": round(statistics.median(result.frame_seconds), 4),
+            }
+        if args.worlds > 0:
+            seconds = []
+            for sequence in range(args.worlds):
+                start = time.perf_counter()
+                drive.make_drive(
+                    0, sequence, args.frames, (args.height, args.width), None, args.rigs,
+                    tuple(mix.items()),
+                )  # fmt: skip
+                seconds.append(time.perf_counter() - start)
+            report["world_sampling"] = {
+                "sequences": args.worlds,
+                "frames_per_sequence": args.frames,
+                "median_s": round(statistics.median(seconds), 3),
             }
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

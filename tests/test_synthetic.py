@@ -9,6 +9,7 @@ Geometry checks use independent float64 re-derivations and shapely.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -355,6 +356,17 @@ def test_same_seed_same_bytes_any_workers(dataset, tmp_path):
     result = generate_dataset(other, N, SEED, **{**ARGS, "workers": 2})
     assert result.generated == N
     assert _tree_digest(other) == _tree_digest(dataset)
+
+
+# sha256 of the sorted {path: sha256} of the ``dataset`` fixture's files. The frames'
+# bytes must not change when the clips' code changes; change this only together with
+# writer.FORMAT_VERSION.
+FRAMES_DIGEST = "a05e2154d1dada0fdd9a0ff82a1245b3d439eb631c87cf89bb1dd77551bb8d78"
+
+
+def test_frame_dataset_bytes_unchanged(dataset):
+    digest = _tree_digest(dataset)
+    assert hashlib.sha256(json.dumps(digest, sort_keys=True).encode()).hexdigest() == FRAMES_DIGEST
 
 
 def test_different_seed_differs(frames):

@@ -17,6 +17,7 @@ from gac_jax.data.files import KittiFormatError
 from gac_jax.data.io_errors import error_line
 from gac_jax.data.synthetic.clips import generate_clips
 from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
+from gac_jax.data.synthetic.traffic import DEFAULT_MIX, SCENARIOS
 from gac_jax.data.synthetic.writer import generate_dataset
 
 
@@ -38,6 +39,26 @@ def _class_arg(text: str) -> tuple[str, tuple[int, int]]:
             f"bad count range {rng!r} in {text!r} (want e.g. Car:3-8)"
         ) from None
     return name, (lo_i, hi_i)
+
+
+def _scenario_arg(text: str) -> tuple[str, float]:
+    """``curve`` (its default share of sequences), ``curve:0.8`` or ``none``."""
+    name, _, share = text.partition(":")
+    if name not in (*SCENARIOS, "none"):
+        raise argparse.ArgumentTypeError(
+            f"unknown scenario {name!r} (known: {', '.join(SCENARIOS)}, none)"
+        )
+    if not share:
+        return name, DEFAULT_MIX.get(name, 0.0)
+    try:
+        value = float(share)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"bad share {share!r} in {text!r} (want e.g. curve:0.5)"
+        ) from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"share of sequences must be in [0, 1] in {text!r}")
+    return name, value
 
 
 def _positive_int(text: str) -> int:
@@ -112,6 +133,17 @@ def build_parser() -> argparse.ArgumentParser:
         "classes not listed are absent",
     )
     p.add_argument(
+        "--scenarios",
+        nargs="+",
+        type=_scenario_arg,
+        default=None,
+        metavar="NAME[:SHARE]",
+        help="clips: what happens in them, each in a share of the sequences: "
+        + " ".join(f"{k}:{v:g}" for k, v in DEFAULT_MIX.items())
+        + " (the default); scenarios not listed never happen; none: straight roads, "
+        "constant speeds",
+    )
+    p.add_argument(
         "--rigs",
         choices=("kitti", "multi"),
         default="kitti",
@@ -129,6 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     """Exactly one of --num and --sequences (with --frames-per-sequence); exits 2 otherwise."""
     if args.sequences is None and args.frames_per_sequence is None:
+        if args.scenarios is not None:
+            parser.error("--scenarios is for clips (--sequences N --frames-per-sequence F)")
         if args.num is None:
             parser.error("give --num N (frames) or --sequences N --frames-per-sequence F (clips)")
         return
@@ -168,6 +202,9 @@ def _clips(args: argparse.Namespace, classes) -> int:
             height=args.height,
             width=args.width,
             classes=classes,
+            scenarios=None
+            if args.scenarios is None
+            else {k: v for k, v in args.scenarios if k != "none"},
             workers=args.workers,
             overwrite=args.overwrite,
             progress=not args.quiet,

@@ -40,16 +40,17 @@ from gac_jax.data.synthetic.generated_dir import (
     start_writing,
 )
 from gac_jax.data.synthetic.scene import DEFAULT_COUNTS
+from gac_jax.data.synthetic.traffic import SCENARIOS
 from gac_jax.data.synthetic.writer import SceneArguments
 
-FORMAT_VERSION = 1  # bump whenever the generated content changes (it keys idempotence)
+FORMAT_VERSION = 2  # bump whenever the generated content changes (it keys idempotence)
 DONE = "clips.json"
 MARKER = ".clips_in_progress.json"
 PARTIAL = ".clips_partial"
 OWNED = ("training", PARTIAL)
-# Seconds to render and write one 375x1242 clip frame in one process: 0.13 s CPU, 0.45 s
-# wall on a shared 2-core Xeon at load 11 (benchmarks/bench_clips.py); only for the time
-# estimate ensure_clips prints.
+# Seconds to render and write one 375x1242 clip frame of the default scenario mix: 0.15 s
+# CPU, 0.30 s wall in one process, 0.50 s in each of 2 processes, on a shared 2-core EPYC
+# at load 7.5 (benchmarks/bench_clips.py); only for the time estimate ensure_clips prints.
 SECONDS_PER_FRAME = 0.5
 
 
@@ -64,6 +65,7 @@ class ClipSpec(SceneArguments):
     height: int = calibration.KITTI_SIZE[0]
     width: int = calibration.KITTI_SIZE[1]
     classes: tuple[tuple[str, int, int], ...] = tuple((k, *v) for k, v in DEFAULT_COUNTS.items())
+    scenarios: tuple[tuple[str, float], ...] = drive.DEFAULT_MIX
 
     def validate(self) -> None:
         """Raises ValueError with a clear message for unusable arguments."""
@@ -74,6 +76,13 @@ class ClipSpec(SceneArguments):
             if not isinstance(value, int | np.integer) or not 1 <= value <= most:
                 raise ValueError(f"{name} must be an integer in 1..{most:,}, got {value!r}")
         self.validate_scene()
+        for name, share in self.scenarios:
+            if name not in SCENARIOS:
+                raise ValueError(f"unknown scenario {name!r} (known: {', '.join(SCENARIOS)})")
+            if not 0.0 <= share <= 1.0:
+                raise ValueError(
+                    f"scenario {name}: share of sequences must be in [0, 1], got {share}"
+                )
 
     def to_json(self) -> dict:
         return {
@@ -87,12 +96,19 @@ class ClipSpec(SceneArguments):
             "height": int(self.height),
             "width": int(self.width),
             "classes": {name: [int(lo), int(hi)] for name, lo, hi in self.classes},
+            "scenarios": {name: float(share) for name, share in self.scenarios},
         }
 
     def drive(self, sequence: int) -> drive.Drive:
         counts = tuple(sorted(self.counts.items()))
         return drive.cached_drive(
-            self.seed, sequence, self.frames_per_sequence, self.image_size, counts, self.rigs
+            self.seed,
+            sequence,
+            self.frames_per_sequence,
+            self.image_size,
+            counts,
+            self.rigs,
+            self.scenarios,
         )
 
 
@@ -171,12 +187,13 @@ def _finish_sequence(root: Path, spec: ClipSpec, sequence: int) -> None:
     """Writes the sequence's calib and poses and gathers its labels (all frames are there)."""
     layout = tracking.KittiTrackingLayout(root)
     seq = sequence_name(sequence)
-    ego = drive.ego_motion(spec.seed, sequence, spec.rigs)
+    ego = drive.ego_motion(spec.seed, sequence, spec.rigs, spec.scenarios)
     calib, _ = drive.clip_calibration(ego, spec.image_size, spec.rigs)
     if not layout.calib(seq).exists():
         kitti.write_calib(layout.calib(seq), calib)
     if not layout.poses(seq).exists():
-        poses = np.stack([ego.pose(k) for k in range(spec.frames_per_sequence)])
+        world = spec.drive(sequence)
+        poses = np.stack([world.pose(k) for k in range(spec.frames_per_sequence)])
         tracking.write_text(layout.poses(seq), tracking.format_poses(poses))
     partial = root / PARTIAL / seq
     if not layout.label(seq).exists():
@@ -199,6 +216,7 @@ def generate_clips(
     height: int = calibration.KITTI_SIZE[0],
     width: int = calibration.KITTI_SIZE[1],
     classes: dict[str, tuple[int, int]] | None = None,
+    scenarios: dict[str, float] | None = None,
     workers: int | None = None,
     overwrite: bool = False,
     progress: bool = False,
@@ -213,6 +231,9 @@ def generate_clips(
       rigs: ``"kitti"`` (KITTI's rigs) or ``"multi"`` (one of eight vehicles per sequence).
       height, width: image size at KITTI's rig (other rigs scale alike).
       classes: class -> (min, max) road users per 66 m of road (default as the frames').
+      scenarios: scenario -> share of the sequences that have it (default
+        :data:`traffic.DEFAULT_MIX`; scenarios not listed never happen; ``{}``: straight
+        roads, constant speeds).
       workers: processes (default one per core; 1 = in this process).
       overwrite: replace clips made with other arguments instead of failing.
       progress: show a progress bar.
@@ -231,6 +252,9 @@ def generate_clips(
         height=height,
         width=width,
         classes=tuple((str(k), int(lo), int(hi)) for k, (lo, hi) in counts.items()),
+        scenarios=drive.DEFAULT_MIX
+        if scenarios is None
+        else tuple((str(k), float(v)) for k, v in scenarios.items()),
     )
     spec.validate()
     root = Path(out_dir)
@@ -279,7 +303,8 @@ def ensure_clips(
 ) -> Path:
     """Returns ``out_dir`` (or :func:`default_clip_dir` when None) holding the clips,
     generating what is missing first (one line on stderr says what, where and about how
-    long; then a progress bar). KITTI-sized images (375x1242 at KITTI's rig).
+    long; then a progress bar). KITTI-sized images (375x1242 at KITTI's rig), the default
+    scenario mix. A cache folder made by an older generator is generated again.
 
     Raises:
       ValueError: bad arguments, or ``out_dir`` holds something else.
@@ -296,6 +321,7 @@ def ensure_clips(
         seed,
         rigs=rigs,
         workers=workers,
+        overwrite=out_dir is None,  # the cache: clips of an older generator are replaced
         progress=True,
         announce=lambda line: print(line, file=sys.stderr, flush=True),
     )

@@ -116,6 +116,11 @@ def road_surface(road, t, s, depth, px_lat, px_long) -> np.ndarray:
         dt = np.mod(t[sel], 1.0)
         cov *= coverage(np.minimum(dt, 0.5 - dt), px_lat[sel])
         paint[sel] = np.maximum(paint[sel], cov)
+    if road.cross is not None:  # a cross street: asphalt across, no lines in the junction
+        c0, c1 = road.cross
+        junction = (s > c0) & (s < c1)
+        color[junction] = road.asphalt * (1.0 + 0.07 * grain + 0.06 * patch)[junction, None]
+        paint[junction] = 0.0
     paint *= road.paint_strength * (1.0 + 0.15 * grain)
     return color * (1.0 - paint[:, None]) + road.paint_color * paint[:, None]
 

@@ -259,6 +259,8 @@ class _Canvas:
         o = (R.T @ (cam.C - scene.road_translation)).astype(np.float32)
         t = o[0] + (A[0, 0] * u + A[0, 1] * v + A[0, 2]) * depth
         s = o[2] + (A[2, 0] * u + A[2, 1] * v + A[2, 2]) * depth
+        if scene.path is not None:  # world road frame -> along the curved road
+            t, s = (c.astype(np.float32) for c in scene.path.to_road(t, s))
         fx, fy = cam.P[0, 0], cam.P[1, 1]
         px_lat = depth * np.float32(1.0 / fx)
         # along the road one pixel spans depth^2 / (f h) metres of ground

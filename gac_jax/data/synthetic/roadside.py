@@ -76,7 +76,8 @@ def build(b) -> None:
             colors = np.array([paving * 1.1] * 6)
             mats = np.full(6, shapes.FLAT)
             colors[shapes.TOP], mats[shapes.TOP] = paving, shapes.PAVING
-            b.add_road_solid(shapes.box(t0, t1, h - kerb, h + 0.3, -20.0, b.road_end, colors, mats))
+            for s0, s1 in spans(b, -20.0, b.road_end):
+                b.add_road_solid(shapes.box(t0, t1, h - kerb, h + 0.3, s0, s1, colors, mats))
             _buildings(b, side, edge + side * width)
             if rng.random() < 0.5:
                 _trees(b, side, edge + side * 0.9, h - kerb, spacing=(8.0, 16.0))
@@ -86,19 +87,41 @@ def build(b) -> None:
             if rng.random() < 0.5:  # concrete barrier
                 t0, t1 = sorted((edge + side * 0.4, edge + side * 0.65))
                 grey = np.array([0.7, 0.7, 0.68]) * rng.uniform(0.8, 1.1)
-                b.add_road_solid(
-                    shapes.box(t0, t1, h - rng.uniform(0.6, 0.9), h + 0.2, -10.0, b.road_end, grey)
-                )
-                b.obstacles.append(
-                    Footprint(
-                        0.5 * (t0 + t1), (b.road_end - 10.0) / 2, (b.road_end + 10.0) / 2, 0.2, 0.0
+                top = h - rng.uniform(0.6, 0.9)
+                for s0, s1 in spans(b, -10.0, b.road_end):
+                    b.add_road_solid(shapes.box(t0, t1, top, h + 0.2, s0, s1, grey))
+                    b.obstacles.append(
+                        Footprint(0.5 * (t0 + t1), (s0 + s1) / 2, (s1 - s0) / 2, 0.2, 0.0)
                     )
-                )
             _trees(b, side, edge + side * rng.uniform(2.0, 5.0), h, spacing=(5.0, 12.0))
             _poles(b, side, edge + side * 1.2, h)
     _skyline(
         b,
     )
+
+
+def spans(b, s0: float, s1: float) -> list[tuple[float, float]]:
+    """``[s0, s1]`` less a cross street (``b.cross``) and, on a curved road, in pieces of
+    ``b.piece_length`` metres overlapping by 1.5 m (each piece is bent rigidly)."""
+    out = [(s0, s1)]
+    if b.cross is not None:
+        c0, c1 = b.cross
+        out = [(a, c) for a, c in ((s0, min(s1, c0)), (max(s0, c1), s1)) if c > a]
+    if b.piece_length is None:
+        return out
+    pieces = []
+    for a, c in out:
+        n = max(1, int(np.ceil((c - a) / b.piece_length)))
+        edges = np.linspace(a, c, n + 1)
+        pieces += [
+            (max(a, e0 - 0.75), min(c, e1 + 0.75))
+            for e0, e1 in zip(edges[:-1], edges[1:], strict=True)
+        ]
+    return pieces
+
+
+def _in_cross(b, s0: float, s1: float) -> bool:
+    return b.cross is not None and s1 > b.cross[0] - 1.0 and s0 < b.cross[1] + 1.0
 
 
 def _buildings(b, side, front_t):
@@ -125,7 +148,8 @@ def _buildings(b, side, front_t):
         mats = np.full(6, shapes.FACADE)
         mats[shapes.TOP] = shapes.FLAT
         solid = shapes.box(t0, t1, h - height, h + 0.5, s, s + width, plaster, mats, params)
-        b.add_road_solid(solid)
+        if not _in_cross(b, s, s + width):
+            b.add_road_solid(solid)
         s += width + (0.0 if rng.random() < 0.6 else rng.uniform(2.0, 10.0))
 
 
@@ -142,15 +166,16 @@ def _trees(b, side, t, ground_y, spacing):
         bark = np.array([0.3, 0.22, 0.15]) * rng.uniform(0.6, 1.2)
         leaf = np.array([0.18, 0.32, 0.12]) * rng.uniform(0.6, 1.4, 3)
         top = ground_y - trunk_h - crown_h
-        b.add_road_solid(
-            shapes.box(
-                tt - 0.15, tt + 0.15, top + 0.5 * crown_h, ground_y, s - 0.15, s + 0.15, bark
+        if not _in_cross(b, s - radius, s + radius):
+            b.add_road_solid(
+                shapes.box(
+                    tt - 0.15, tt + 0.15, top + 0.5 * crown_h, ground_y, s - 0.15, s + 0.15, bark
+                )
             )
-        )
-        ys = [top, top + 0.45 * crown_h, top + crown_h]
-        radii = [0.5 * radius, radius, 0.45 * radius]
-        b.add_road_solid(shapes.lathe(radii, ys, 8, (tt, s), leaf, shapes.FOLIAGE))
-        b.obstacles.append(Footprint(tt, s, 0.3, 0.3, 0.0))
+            ys = [top, top + 0.45 * crown_h, top + crown_h]
+            radii = [0.5 * radius, radius, 0.45 * radius]
+            b.add_road_solid(shapes.lathe(radii, ys, 8, (tt, s), leaf, shapes.FOLIAGE))
+            b.obstacles.append(Footprint(tt, s, 0.3, 0.3, 0.0))
         s += rng.uniform(*spacing)
 
 
@@ -159,22 +184,19 @@ def _poles(b, side, t, ground_y):
     s = rng.uniform(0.0, 30.0)
     while s < b.road_end - 20:
         grey = np.array([0.5, 0.5, 0.52]) * rng.uniform(0.6, 1.2)
+        keep = not _in_cross(b, s - 0.5, s + 0.5)  # (the random draws stay the same)
+        add = b.add_road_solid if keep else lambda solid: None
         if rng.random() < 0.3:  # traffic sign
             top = ground_y - rng.uniform(2.2, 2.8)
-            b.add_road_solid(
-                shapes.box(t - 0.04, t + 0.04, top, ground_y, s - 0.04, s + 0.04, grey)
-            )
+            add(shapes.box(t - 0.04, t + 0.04, top, ground_y, s - 0.04, s + 0.04, grey))
             plate = [(0.1, 0.25, 0.65), (0.8, 0.1, 0.1), (0.9, 0.9, 0.9), (0.9, 0.75, 0.1)]
             color = np.array(plate[rng.integers(4)])
-            b.add_road_solid(
-                shapes.box(t - 0.35, t + 0.35, top - 0.6, top + 0.05, s - 0.08, s - 0.04, color)
-            )
+            add(shapes.box(t - 0.35, t + 0.35, top - 0.6, top + 0.05, s - 0.08, s - 0.04, color))
         else:
             top = ground_y - rng.uniform(5.0, 8.0)
-            b.add_road_solid(
-                shapes.box(t - 0.08, t + 0.08, top, ground_y, s - 0.08, s + 0.08, grey)
-            )
-        b.obstacles.append(Footprint(t, s, 0.3, 0.4, 0.0))
+            add(shapes.box(t - 0.08, t + 0.08, top, ground_y, s - 0.08, s + 0.08, grey))
+        if keep:
+            b.obstacles.append(Footprint(t, s, 0.3, 0.4, 0.0))
         s += rng.uniform(20.0, 45.0)
 
 

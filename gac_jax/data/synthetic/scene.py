@@ -20,6 +20,7 @@ import dataclasses
 import numpy as np
 
 from gac_jax.data.synthetic import roadside, shapes
+from gac_jax.data.synthetic.road_path import RoadPath
 from gac_jax.data.synthetic.roadside import Footprint
 from gac_jax.geometry import box2d_from_corners, box3d_corners, rotation_y_matrix, wrap_angle
 
@@ -60,6 +61,7 @@ class Road:
       markings: (M, 5) painted lines: ``t``, half width, dash period (0 = solid),
         dash length, phase.
       crosswalk: ``(s0, s1)`` extent of a zebra crossing, or None.
+      cross: ``(s0, s1)`` extent of a cross street (asphalt to both sides), or None.
     """
 
     left: float
@@ -72,6 +74,7 @@ class Road:
     verge_right: np.ndarray
     paint_color: np.ndarray
     paint_strength: float
+    cross: tuple[float, float] | None = None
 
 
 @dataclasses.dataclass
@@ -109,6 +112,7 @@ class Scene:
     sky_top: np.ndarray
     sky_horizon: np.ndarray
     exposure: np.ndarray  # (3,) per-channel gain of the camera
+    path: RoadPath | None = None  # a curved road's centre line (None: straight)
 
     @property
     def ground_normal(self) -> np.ndarray:
@@ -116,7 +120,11 @@ class Scene:
         return self.road_rotation[:, 1].copy()
 
     def to_road(self, points: np.ndarray) -> np.ndarray:
-        """Camera-frame points (..., 3) -> road coordinates ``(t, y, s)`` (same dtype)."""
+        """Camera-frame points (..., 3) -> road coordinates ``(t, y, s)`` (same dtype).
+
+        With a curved road (``path``) these are world road-frame coordinates ``(x, y, z)``
+        (:mod:`road_path`), the same ground plane.
+        """
         pts = np.asarray(points)
         R = self.road_rotation.astype(pts.dtype)
         d = [pts[..., i] - pts.dtype.type(self.road_translation[i]) for i in range(3)]
@@ -158,16 +166,24 @@ class SceneBuilder:
         self.road_end = roadside.ROAD_END  # how far the roadside is built (s, metres)
         self.objects: list[SceneObject] = []
         self.obstacles: list[Footprint] = []
+        # a clip's choices (no effect on the random draws of a single frame)
+        self.two_way = False  # no one-way road
+        self.min_right_lanes = 1  # lanes in the ego's direction
+        self.force_parking = False  # a parking lane on the right
+        self.cross: tuple[float, float] | None = None  # a cross street (s0, s1)
+        self.piece_length: float | None = None  # long kerbs in pieces (a curved road)
 
     # ----------------------------------------------------------------- road
     def road(self):
         rng = self.rng
         lane_w = rng.uniform(3.0, 3.6)
-        one_way = rng.random() < 0.2
+        one_way = rng.random() < 0.2 and not self.two_way
         n_left = 0 if one_way else int(rng.integers(1, 3))
         n_right = int(rng.integers(1, 4)) if one_way else int(rng.integers(1, 3))
+        n_right = max(n_right, self.min_right_lanes)
         self.sides = {s: ("urban" if rng.random() < 0.7 else "open") for s in (-1, 1)}
         park = {s: self.sides[s] == "urban" and rng.random() < 0.5 for s in (-1, 1)}
+        park[1] = park[1] or self.force_parking
         lanes_left, lanes_right = -n_left * lane_w, n_right * lane_w
         self.lanes = [((i + 0.5) * lane_w, 0.0) for i in range(n_right)]
         self.lanes += [(-(i + 0.5) * lane_w, np.pi) for i in range(n_left)]
@@ -226,6 +242,7 @@ class SceneBuilder:
             verge_right=verges[1].astype(np.float32),
             paint_color=np.array([0.9, 0.9, 0.87], np.float32),
             paint_strength=float(rng.uniform(0.6, 0.95)),
+            cross=self.cross,
         )
 
     def add_road_solid(self, solid: shapes.Solid):
