@@ -54,7 +54,6 @@ from pathlib import Path
 import numpy as np
 
 from gac_jax.data.files import KittiFormatError, atomic_write
-from gac_jax.data.loader import plane_array
 from gac_jax.deploy.export import artifact
 from gac_jax.deploy.telemetry import import_nncf, import_openvino
 
@@ -183,6 +182,8 @@ def calibration_frames(task: str, config, frames: int, seed: int) -> tuple[list[
     """``frames`` transformed training images (fewer if the split is smaller) as network
     feeds ``{'images': (1,H,W,3) float32, 'P2': (1,3,4) float32, 'plane': (1,4) float32}`` (the
     frame's ground plane, else the config's level one), and their description."""
+    from gac_jax.data.loader import plane_array  # grain: imported when calibrating only
+
     source, transform, root = calibration_source(task, config)
     if len(source) == 0:
         raise KittiFormatError(root, f"no frames in the training split {config.data.train_split}")

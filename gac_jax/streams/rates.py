@@ -1,8 +1,10 @@
 """Sustained frames/s and per-frame latency of a stream (thread-safe).
 
-A frame's latency runs from the moment reading (decoding) of it began to the moment its
-annotated picture and results were written. The sustained rate is frames written per second
-of wall time from the first frame's read to the last frame's write (pipeline fill included).
+A frame's latency runs from the moment reading (decoding) of it began, or from the moment the
+stream started after the start-up (model loading, export, warm-up) for a frame read before,
+to the moment its annotated picture and results were written. The sustained rate is frames
+written per second of wall time from the first frame's start to the last frame's write
+(pipeline fill included, start-up not: the caller reports that on its own line).
 """
 
 from __future__ import annotations

@@ -194,6 +194,9 @@ class CameraSource:
 
     def __init__(self, index: int, P2: np.ndarray, calib: str, plane: np.ndarray | None = None):
         self.name = f"camera {index}"
+        if isinstance(index, bool) or not isinstance(index, int) or index < 0:
+            # OpenCV takes -1 as "any camera" and some backends crash on it
+            raise KittiFormatError(self.name, "a camera index is an integer >= 0")
         self._capture = cv2.VideoCapture(index)
         if not self._capture.isOpened():
             raise KittiFormatError(
