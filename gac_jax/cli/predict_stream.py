@@ -117,6 +117,11 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
     for problem in numeric_problems(args):  # one line, as the other input errors
         print(f"error: {problem}", file=sys.stderr)
         raise SystemExit(2)
+    try:  # the outputs, in a fraction of a second: before JAX is even imported
+        plan_outputs(args, clear=False)
+    except KittiFormatError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def numeric_problems(args: argparse.Namespace) -> list[str]:
@@ -192,26 +197,35 @@ def open_source(args: argparse.Namespace):
     return source
 
 
-def output_folder(args: argparse.Namespace, source) -> Path:
+def output_folder(args: argparse.Namespace) -> Path:
+    """``--out``, else ``W/predict/<input name>`` (``camera<N>``, clip ``000N``)."""
     if args.out:
         return Path(args.out)
-    name = Path(source.name).stem if stream_kind(args) != "camera" else f"camera{args.camera}"
+    kind = stream_kind(args)
+    if kind == "camera":
+        name = f"camera{args.camera}"
+    elif kind == "clip":
+        name = f"{args.clip:04d}"  # the sequence folder of the generated set
+    else:
+        name = Path(args.video if kind == "video" else args.sequence).stem
     return Path(args.workdir) / "predict" / (name or "stream")
 
 
-def plan_outputs(args: argparse.Namespace, source):
-    """The checked output paths (:func:`gac_jax.streams.output_plan.plan_outputs`) and the
-    free space for a few seconds of video; before any model is loaded."""
+def plan_outputs(args: argparse.Namespace, source=None, clear: bool = True):
+    """The checked output paths (:func:`gac_jax.streams.output_plan.plan_outputs`; ``clear``:
+    deletes an earlier run's results with ``--overwrite``) and, given the opened ``source``,
+    the free space for a few seconds of video; before any model is loaded."""
     from gac_jax.streams import output_plan
 
-    out = output_folder(args, source)
+    out = output_folder(args)
     video = None
     if not args.no_images:
         video = args.out_video or out / output_plan.VIDEO_NAME
     inputs = [p for p in (args.video, args.calib, args.plane) if p is not None]
-    plan = output_plan.plan_outputs(out, video, args.jsonl, inputs, args.overwrite)
-    h, w = source.size
-    output_plan.check_free_space(plan, h * (w + h), source.fps)
+    plan = output_plan.plan_outputs(out, video, args.jsonl, inputs, args.overwrite, clear)
+    if source is not None:
+        h, w = source.size
+        output_plan.check_free_space(plan, h * (w + h), source.fps)
     return plan
 
 

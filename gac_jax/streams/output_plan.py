@@ -86,13 +86,16 @@ def plan_outputs(
     jsonl: bool,
     inputs: list[str | os.PathLike],
     overwrite: bool,
+    clear: bool = True,
 ) -> OutputPlan:
-    """Resolves and checks the outputs (module doc); with ``overwrite`` deletes the earlier
-    result files. ``video``: the video file (None: none); ``inputs``: files the stream reads
-    (none of them may be an output)."""
+    """Resolves and checks the outputs (module doc); with ``overwrite`` and ``clear`` deletes
+    the earlier result files. ``video``: the video file (None: none); ``inputs``: files the
+    stream reads (none of them may be an output)."""
     folder = Path(folder).absolute()
     if folder.exists() and not folder.is_dir():
         raise KittiFormatError(folder, "is a file; --out needs a folder (or a new name)")
+    if video is not None and Path(video).is_dir():
+        raise KittiFormatError(video, "is a folder; --out-video needs a video file name")
     plan = OutputPlan(
         folder=folder,
         video=None if video is None else Path(check_video_path(video)).absolute(),
@@ -100,8 +103,6 @@ def plan_outputs(
         jsonl=jsonl,
     )
     if plan.video is not None:
-        if plan.video.is_dir():
-            raise KittiFormatError(plan.video, "is a folder; --out-video needs a video file name")
         for source in inputs:
             if _same_file(plan.video, Path(source).absolute()):
                 raise KittiFormatError(
@@ -125,7 +126,7 @@ def plan_outputs(
             f"already holds the results of an earlier run ({', '.join(held)}); pass "
             "--overwrite to replace them, or choose another folder with --out",
         )
-    for path in earlier:
+    for path in earlier if clear else []:
         if path != plan.video:  # an earlier video stays until the new one is complete
             path.unlink(missing_ok=True)
     return plan

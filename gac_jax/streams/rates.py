@@ -74,7 +74,10 @@ class StreamRates:
 
 
 def format_rates(s: dict[str, float]) -> str:
-    """``"12.3 frames/s, latency median 81 ms, p95 95 ms"`` of a :meth:`StreamRates.summary`."""
+    """``"12.3 frames/s, latency median 81 ms, p95 95 ms"`` of a :meth:`StreamRates.summary`
+    (``"0 frames/s"`` when none was written: no latency to tell)."""
+    if not s["frames"]:
+        return "0 frames/s"
     return (
         f"{s['fps']:.1f} frames/s, latency median {s['latency_median_ms']:.0f} ms, "
         f"p95 {s['latency_p95_ms']:.0f} ms"
