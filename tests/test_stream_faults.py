@@ -130,8 +130,8 @@ def test_a_full_disk_keeps_a_playable_prefix_and_the_earlier_video(
 def test_sigterm_ends_a_stream_as_ctrl_c_does(tiny_detect3d_workdir, stream_input, tmp_path, when):
     """SIGTERM mid-stream: reading stops, the frames in flight finish, a playable video of
     exactly the frames with result files, the summary, exit 143. During start-up (the output
-    folder is made and checked before the model loads): one line, exit 143, nothing written,
-    no traceback, nothing hidden."""
+    folder is made after the input opened, before the model loads): one line, exit 143,
+    nothing written, no traceback, nothing hidden."""
     make_video, calib = stream_input
     video = make_video("long.avi", 400, fps=10.0)
     out = tmp_path / "out"

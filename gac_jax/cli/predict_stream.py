@@ -118,6 +118,8 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
         print(f"error: {problem}", file=sys.stderr)
         raise SystemExit(2)
     try:  # the outputs, in a fraction of a second: before JAX is even imported
+        if not Path(args.workdir).is_dir():
+            raise KittiFormatError(args.workdir, "workdir not found")
         plan_outputs(args, clear=False)
     except KittiFormatError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -45,11 +45,19 @@ class OutputPlan:
     jsonl: bool
 
 
-def _probe(folder: Path, what: str) -> None:
-    """Creates ``folder`` and a file in it (deleted again), or raises naming the cause."""
+def _probe(folder: Path, what: str, create: bool) -> None:
+    """Creates ``folder`` (``create``; else takes its nearest existing ancestor, where it would
+    be created) and a file in it (deleted again), or raises naming the cause."""
+    where = folder
+    if not create:
+        while not where.exists() and where.parent != where:
+            where = where.parent
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".gac_jax_probe.", dir=folder)
+        if create:
+            folder.mkdir(parents=True, exist_ok=True)
+        elif not where.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(where))
+        fd, probe = tempfile.mkstemp(prefix=".gac_jax_probe.", dir=where)
         os.close(fd)
         os.unlink(probe)
     except OSError as e:
@@ -88,9 +96,10 @@ def plan_outputs(
     overwrite: bool,
     clear: bool = True,
 ) -> OutputPlan:
-    """Resolves and checks the outputs (module doc); with ``overwrite`` and ``clear`` deletes
-    the earlier result files. ``video``: the video file (None: none); ``inputs``: files the
-    stream reads (none of them may be an output)."""
+    """Resolves and checks the outputs (module doc). ``clear``: creates the folders and, with
+    ``overwrite``, deletes the earlier result files (without ``clear`` nothing is changed).
+    ``video``: the video file (None: none); ``inputs``: files the stream reads (none of them
+    may be an output)."""
     folder = Path(folder).absolute()
     if folder.exists() and not folder.is_dir():
         raise KittiFormatError(folder, "is a file; --out needs a folder (or a new name)")
@@ -113,9 +122,9 @@ def plan_outputs(
         raise KittiFormatError(plan.results, "is a folder; --jsonl writes a file of that name")
     if not jsonl and plan.results.exists() and not plan.results.is_dir():
         raise KittiFormatError(plan.results, "is a file; the per-frame results need a folder")
-    _probe(folder, "output folder")
+    _probe(folder, "output folder", create=clear)
     if plan.video is not None and plan.video.parent != folder:
-        _probe(plan.video.parent, "folder of --out-video")
+        _probe(plan.video.parent, "folder of --out-video", create=clear)
     earlier = earlier_results(plan)
     if earlier and not overwrite:
         results = [p for p in earlier if p.parent.name == RESULTS_DIR]

@@ -28,6 +28,7 @@ import sys
 
 NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP"}
 _early: list[int] = []  # signals that came before StopSignals was entered
+_before: dict[int, object] = {}  # the handlers before record_early
 
 
 def _record(signum, frame) -> None:
@@ -38,9 +39,11 @@ def _record(signum, frame) -> None:
 
 def record_early() -> None:
     """First thing of a stream command (after parsing its arguments): the stop signals are
-    recorded, not acted on, until :class:`StopSignals` takes over and ends the start-up."""
+    recorded, not acted on, until :class:`StopSignals` takes over and ends the start-up (its
+    exit restores the handlers from before this call)."""
     for signum in NAMES:
-        signal.signal(signum, _record)
+        previous = signal.signal(signum, _record)
+        _before.setdefault(signum, previous)
 
 
 def exit_status(signum: int) -> int:
@@ -79,7 +82,8 @@ class StopSignals:
 
     def __exit__(self, *exc) -> None:
         for signum, previous in self._previous.items():
-            signal.signal(signum, previous)
+            signal.signal(signum, _before.pop(signum, previous))
+        _early.clear()
         sys.unraisablehook = self._unraisable
 
     def _unraisable_hook(self, unraisable) -> None:
