@@ -85,10 +85,6 @@ def stream_kind(args: argparse.Namespace) -> str | None:
 
 def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     given = [f"--{k}" for k in STREAM_SOURCES if getattr(args, k) is not None]
-    if given:  # from here on a stop signal ends the start-up cleanly
-        from gac_jax.streams.stop_signals import record_early
-
-        record_early()
     if args.input is not None and args.camera is not None:
         parser.error(
             "--camera INDEX opens a live camera; the P2/P3 choice of image input is "
@@ -124,6 +120,9 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
     except KittiFormatError as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
+    from gac_jax.streams.stop_signals import record_early
+
+    record_early()  # from here on a stop signal ends the start-up cleanly
 
 
 def numeric_problems(args: argparse.Namespace) -> list[str]:
