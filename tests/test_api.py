@@ -199,6 +199,18 @@ def test_every_bad_input_raises_one_named_input_error(detector, frames, tiny_det
     )
     bad("plane", lambda: detector.predict(image, P2, [0, 1, 0, -1.65]), "point up")
     detector.predict(image, P2, [0, -1 - 0.5 * PLANE_NORM_TOLERANCE, 0, 1.65])  # within
+    for d in (0.0, -1.65):  # the ground through or above the camera
+        bad("plane", lambda d=d: detector.predict(image, P2, [0, -1, 0, d]), "above the ground")
+    # 4000 x 10: resized to the input height it would have no column (cv2.error before)
+    tall = np.zeros((4000, 10, 3), np.uint8)
+    bad("image", lambda: detector.predict(tall, P2), "4000x10", "0 pixels wide")
+    flat = P2.copy()
+    flat[2] = 0  # numpy's LinAlgError before
+    bad("P2", lambda: detector.predict(image, flat), "singular")
+    bad("P2s[0]", lambda: detector.predict_batch([image], [flat]), "singular")
+    outside = P2.copy()
+    outside[0, 2] = image.shape[1] + 100  # the principal point right of the image
+    bad("P2", lambda: detector.prepare(image, outside), "does not fit", "outside")
     bad("P2s", lambda: detector.predict_batch([image, image], [P2]), "1 projection", "2 images")
     bad("planes", lambda: detector.predict_batch([image], [P2], [None, None]), "2 planes")
     bad("images[1]", lambda: detector.predict_batch([image, image[..., :2]], [P2, P2]), "RGB")

@@ -206,16 +206,17 @@ def test_jsonl_and_partial_files(tmp_path):
         outputs.AnnotatedVideo(tmp_path / "x.gif", 10)
 
 
-@pytest.mark.parametrize("suffix", [".mp4", ".avi"])
-def test_odd_picture_sizes(tmp_path, suffix):
-    """Frames of an odd size are padded to an even one (FFmpeg would cut a row and column)."""
+@pytest.mark.parametrize("suffix, size", [(".mp4", (47, 81)), (".avi", (48, 82))])
+def test_odd_picture_sizes(tmp_path, suffix, size):
+    """Frames of an odd size: JPEG frames of an MP4 keep it; OpenCV's AVI writer pads them to
+    an even one (FFmpeg would cut a row and column)."""
     video = outputs.AnnotatedVideo(tmp_path / f"v{suffix}", 10.0)
     for value in (50, 150):
         video.write(np.full((47, 81, 3), value, np.uint8))
     video.close()
     capture = cv2.VideoCapture(str(tmp_path / f"v{suffix}"))
     ok, bgr = capture.read()
-    assert ok and bgr.shape[:2] == (48, 82) and count_frames(tmp_path / f"v{suffix}") == 2
+    assert ok and bgr.shape[:2] == size and count_frames(tmp_path / f"v{suffix}") == 2
     assert abs(float(bgr[:47, :81].mean()) - 50) < 8  # lossy
 
 
@@ -284,3 +285,41 @@ def test_sources_check_the_calibration_and_the_input(tmp_path):
     with pytest.raises(KittiFormatError, match="000003.png: frame is 80x50 but the first"):
         for _ in range(4):
             src.read()
+
+
+class StartupSource(ListSource):
+    """A source whose frames were all read 5 s before the stream started (a video's first
+    frame is decoded when it opens, before the model loads)."""
+
+    def read(self):
+        frame = super().read()
+        if frame is not None:
+            frame.t_read -= 5.0
+        return frame
+
+
+class FailingResults(outputs.KittiResults):
+    def __init__(self, folder, fail_at: int):
+        super().__init__(folder)
+        self.fail_at = fail_at
+
+    def write(self, frame_id, index, objects, record):
+        if self.frames == self.fail_at:
+            raise OSError(28, "No space left on device", str(self.folder / f"{frame_id}.txt"))
+        super().write(frame_id, index, objects, record)
+
+
+def test_rates_start_with_the_stream_and_a_failed_result_cuts_its_picture(tmp_path):
+    """Latency counts from the stream's start for frames read during start-up; a results
+    write that fails ends the stream as a write error, and the MP4 holds exactly the frames
+    with result files."""
+    video = outputs.AnnotatedVideo(tmp_path / "out.mp4", 10.0)
+    results = FailingResults(tmp_path / "data", fail_at=4)
+    pipeline = StreamPipeline(StartupSource(10), FakeDetector(), video, results, report_every=0)
+    report = pipeline.run()
+    assert report.rates["latency_p95_ms"] < 4000  # not the 5 s before the start
+    assert isinstance(report.write_error, OSError) and report.error is report.write_error
+    assert report.written == 4 and not report.interrupted
+    assert video.close(complete=False) == tmp_path / "out.incomplete.mp4"
+    assert count_frames(tmp_path / "out.incomplete.mp4") == 4
+    assert len(list((tmp_path / "data").glob("*.txt"))) == 4

@@ -291,7 +291,9 @@ class Detector3D(StagedModel):
           InputError: naming ``image``, ``P2`` or ``plane``.
         """
         d = self.config.data
-        sample = image_sample(image, P2, plane, min_rows=self.min_image_rows)
+        sample = image_sample(
+            image, P2, plane, min_rows=self.min_image_rows, resize=(d.crop_top, d.height)
+        )
         arrays = self._arrays(self._transform(sample))
         h, w = image.shape[:2]
         return PreparedImage(

@@ -6,7 +6,10 @@ RGB ``uint8`` ``(H, W, 3)`` of any size; ``P2`` is the ``(3, 4)`` projection of 
 (camera frame: x right, y down, z forward; image: u right, v down); ``plane`` is ``(a, b, c,
 d)`` of the road ``a x + b y + c z + d = 0`` in that camera frame with a unit normal pointing
 up (``b < 0``; ``| |(a, b, c)| - 1 | <=`` :data:`PLANE_NORM_TOLERANCE`), so ``d`` is the
-camera's height above it (:func:`gac_jax.geometry.normalize_plane` makes one from any scale).
+camera's height above it, > 0 (:func:`gac_jax.geometry.normalize_plane` makes one from any
+scale). ``P2`` must be invertible and fit its image (:func:`check_fits`: the check the stream
+CLI applies to its calibration files too), and the image must keep at least one column when
+resized to the network's input height.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ import numpy as np
 from gac_jax.data.sources import new_sample
 
 PLANE_NORM_TOLERANCE = 1e-3
+MAX_CONDITION = 1e12  # of P2's left 3x3 block: beyond it, singular in float64
+CENTRE_BAND = 0.6  # the principal point must lie in the middle 60 % of each image axis
 
 
 class InputError(ValueError):
@@ -84,7 +89,59 @@ def check_projection(P2: Any, name: str = "P2") -> np.ndarray:
         raise InputError(
             name, f"focal lengths P2[0, 0] = {P[0, 0]:g} and P2[1, 1] = {P[1, 1]:g} must be > 0"
         )
+    if not np.linalg.cond(P[:, :3]) < MAX_CONDITION:
+        raise InputError(
+            name,
+            "is singular: its left 3x3 block cannot be inverted (a camera projection's third "
+            "row is (0, 0, 1, t))",
+        )
     return P
+
+
+def check_fits(
+    P2: np.ndarray,
+    size: tuple[int, int],
+    name: str = "P2",
+    what: str = "image",
+    centre_band: bool = False,
+) -> None:
+    """Raises :class:`InputError` if ``P2`` cannot be the projection of an image of
+    ``size = (H, W)``: its principal point ``(P2[0, 2], P2[1, 2])`` must lie in the image.
+    ``centre_band``: also in its middle :data:`CENTRE_BAND` along each axis, the stream CLI's
+    check of a calibration file (a point near an edge means the calibration of another image
+    size: KITTI's 1242 x 375 one on a 640 x 480 camera puts it at u = 609 of 640; the API
+    does not ask it, a cropped image may have its point near an edge). ``what`` names the
+    image in the message."""
+    h, w = size
+    cu, cv = float(P2[0, 2]), float(P2[1, 2])
+    where = f"the {w}x{h} {what}"
+    if not (0 <= cu <= w - 1 and 0 <= cv <= h - 1):
+        raise InputError(
+            name,
+            f"does not fit {where}: its principal point ({cu:.1f}, {cv:.1f}) is outside "
+            "the frame (a calibration of another image size?)",
+        )
+    lo, hi = (1 - CENTRE_BAND) / 2, (1 + CENTRE_BAND) / 2
+    if centre_band and not (lo * w <= cu <= hi * w and lo * h <= cv <= hi * h):
+        raise InputError(
+            name,
+            f"does not fit {where}: its principal point ({cu:.1f}, {cv:.1f}) is far from "
+            f"the centre (expected within the middle {CENTRE_BAND:.0%} of each axis; a "
+            "calibration of another image size?)",
+        )
+
+
+def check_resized(image: np.ndarray, rows: int, height: int, name: str = "image") -> None:
+    """Raises :class:`InputError` when ``rows`` rows of ``image`` resized to the network's
+    ``height`` rows (aspect kept) leave no column: an image far taller than wide."""
+    h, w = image.shape[:2]
+    width = int(round(w * height / rows))
+    if width < 1:
+        raise InputError(
+            name,
+            f"image is {h}x{w} (H x W): resized to the model's {height}-row input it would be "
+            f"{width} pixels wide (far taller than wide; crop it to a camera's aspect)",
+        )
 
 
 def check_plane(plane: Any, name: str = "plane") -> np.ndarray | None:
@@ -117,15 +174,33 @@ def check_plane(plane: Any, name: str = "plane") -> np.ndarray | None:
         raise InputError(
             name, f"normal must point up (b < 0 in the camera frame, y down), got b = {p[1]:g}"
         )
+    if not p[3] > 0:
+        raise InputError(
+            name,
+            f"d = {p[3]:g}: the camera must be above the ground (d is its height in metres, "
+            "> 0); the plane runs through or above it",
+        )
     return p
 
 
-def image_sample(image: Any, P2: Any, plane: Any = None, min_rows: int = 1) -> dict:
+def image_sample(
+    image: Any,
+    P2: Any,
+    plane: Any = None,
+    min_rows: int = 1,
+    resize: tuple[int, int] | None = None,
+) -> dict:
     """A checked (image, P2, plane) as a fresh sample of the data pipeline
     (:func:`gac_jax.data.sources.new_sample`: identity ``image_transform``), ready for a test
-    transform; without ``plane`` the sample has none (the model's level camera)."""
+    transform; without ``plane`` the sample has none (the model's level camera).
+
+    ``resize = (top, height)``: the transform resizes the rows below the first ``top`` to
+    ``height`` (:func:`check_resized`). ``P2`` must fit the image (:func:`check_fits`)."""
     image = check_image(image, min_rows=min_rows)
+    if resize is not None:
+        check_resized(image, image.shape[0] - resize[0], resize[1])
     P = check_projection(P2)
+    check_fits(P, image.shape[:2])
     p = check_plane(plane)
     extra = {} if p is None else {"plane": p}
     return new_sample("image", 2, image, P, **extra)

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import json
+import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import jax
@@ -9,7 +13,7 @@ import ml_collections
 
 from gac_jax.data import transforms
 from gac_jax.data.cache import default_cache_dir
-from gac_jax.data.files import KittiFormatError
+from gac_jax.data.files import KittiFormatError, atomic_write
 from gac_jax.progress import say
 
 
@@ -85,3 +89,46 @@ def plane_ops(data: ml_collections.ConfigDict) -> list:
     (``data.use_planes = False``, variant ``fixedplane``; absent in older workdirs: used),
     else ``[]``: the first transforms of both tasks' train and eval chains."""
     return [] if data.get("use_planes", True) else [transforms.DropGroundPlane()]
+
+
+CACHE_RECORD = "data_cache.json"  # in a run folder: the cache its embedded dataset is in
+
+
+def record_cache(workdir: str | os.PathLike) -> None:
+    """Writes ``WORKDIR/data_cache.json``: the cache root (``$GAC_JAX_CACHE`` or the
+    default) of the run, so that later work on the run's data (int8 calibration) finds
+    the dataset the run trained on whatever ``$GAC_JAX_CACHE`` says then."""
+    with atomic_write(Path(workdir) / CACHE_RECORD) as f:
+        json.dump({"cache": str(default_cache_dir().absolute())}, f)
+        f.write("\n")
+
+
+def run_cache(workdir: str | os.PathLike | None) -> Path | None:
+    """The cache root :func:`record_cache` wrote for the run (None: none recorded, an older
+    run folder, or no workdir)."""
+    if workdir is None:
+        return None
+    path = Path(workdir) / CACHE_RECORD
+    try:
+        return Path(json.loads(path.read_text())["cache"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+@contextlib.contextmanager
+def cache_of_run(workdir: str | os.PathLike | None) -> Iterator[Path]:
+    """Inside, :func:`~gac_jax.data.cache.default_cache_dir` is the run's recorded cache
+    (:func:`run_cache`; unchanged when none is recorded). Yields the cache in effect."""
+    recorded = run_cache(workdir)
+    if recorded is None:
+        yield default_cache_dir()
+        return
+    before = os.environ.get("GAC_JAX_CACHE")
+    os.environ["GAC_JAX_CACHE"] = str(recorded)
+    try:
+        yield recorded
+    finally:
+        if before is None:
+            os.environ.pop("GAC_JAX_CACHE", None)
+        else:
+            os.environ["GAC_JAX_CACHE"] = before

@@ -14,15 +14,19 @@ driving clip N (made into the cache on first use, no download). Without a plane 
 level camera is used. Writes ``OUT/annotated.mp4`` (camera view with 3D boxes | bird's-eye
 view, at the input's fps) and ``OUT/data/<frame>.txt`` (or ``OUT/detections.jsonl`` with
 ``--jsonl``) as frames finish; prints frames/s and latency every few seconds and at the end.
-Ctrl-C stops reading and finishes the frames in flight (twice: drops them); the video stays
-playable.
+Ctrl-C, SIGTERM and SIGHUP stop reading and finish the frames in flight (twice: drop them);
+the video stays playable; exit 130 / 143 / 129 (:mod:`gac_jax.streams.stop_signals`). The
+outputs are checked before the model is loaded (:mod:`gac_jax.streams.output_plan`: a folder
+with an earlier run's results needs ``--overwrite``); a failed write ends the run with one
+line and exit 1, keeping the frames written so far (:mod:`gac_jax.streams.outputs`).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
 import os
-import signal
 import sys
 from pathlib import Path
 
@@ -32,6 +36,7 @@ STREAM_SOURCES = ("video", "camera", "sequence", "clip")
 CLIP_SEQUENCES = 2  # sequences of the generated clip set (--clip 0, --clip 1)
 CLIP_FRAMES = 60  # frames per sequence (6 s at 10 Hz; about 1 s per frame to generate)
 EXIT_INTERRUPTED = 130
+EXIT_WRITE_FAILED = 1  # an output could not be written (a full disk, a permission)
 DEFAULT_FPS = 10.0  # a sequence's rate (KITTI records at 10 Hz), or a source's without one
 
 
@@ -61,7 +66,15 @@ def add_stream_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument("--fps", type=float, help="frame rate of a sequence (default 10)")
     group.add_argument("--max-frames", type=int, help="stop after this many frames")
-    group.add_argument("--report-every", type=float, default=5.0, help="seconds per line")
+    group.add_argument(
+        "--report-every", type=float, default=5.0, help="seconds per progress line (0: none)"
+    )
+    group.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the results of an earlier run in the output folder (deleted first; an "
+        "earlier video is replaced when the new one is complete)",
+    )
 
 
 def stream_kind(args: argparse.Namespace) -> str | None:
@@ -86,7 +99,7 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
     if args.out_video is not None and args.no_images:
         parser.error("--out-video and --no-images: give one (--no-images writes no video)")
     if not given:
-        stream_only = ["plane", "out_video", "jsonl", "realtime", "fps", "max_frames"]
+        stream_only = ["plane", "out_video", "jsonl", "realtime", "fps", "max_frames", "overwrite"]
         used = [
             f"--{k.replace('_', '-')}" for k in stream_only if getattr(args, k) not in (None, False)
         ]
@@ -97,12 +110,42 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
         parser.error(
             "--config: a stream runs the workdir's own config (or --checkpoint + --config)"
         )
-    if args.fps is not None and not args.fps > 0:
-        parser.error("--fps must be > 0")
-    if args.max_frames is not None and args.max_frames < 1:
-        parser.error("--max-frames must be >= 1")
-    if args.clip is not None and args.clip < 0:
-        parser.error("--clip N must be >= 0")
+    for problem in numeric_problems(args):  # one line, as the other input errors
+        print(f"error: {problem}", file=sys.stderr)
+        raise SystemExit(2)
+    try:  # the outputs, in a fraction of a second: before JAX is even imported
+        if not Path(args.workdir).is_dir():
+            raise KittiFormatError(args.workdir, "workdir not found")
+        plan_outputs(args, clear=False)
+    except KittiFormatError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    from gac_jax.streams.stop_signals import record_early
+
+    record_early()  # from here on a stop signal ends the start-up cleanly
+
+
+def numeric_problems(args: argparse.Namespace) -> list[str]:
+    """What is wrong with the numeric options of a stream (checked before anything opens)."""
+    checks = [
+        ("--camera", args.camera, lambda v: v >= 0, "must be a device index >= 0"),
+        ("--clip", args.clip, lambda v: v >= 0, "N must be >= 0"),
+        ("--fps", args.fps, lambda v: math.isfinite(v) and v > 0, "must be a number > 0"),
+        ("--max-frames", args.max_frames, lambda v: v >= 1, "must be >= 1"),
+        (
+            "--report-every",
+            args.report_every,
+            lambda v: math.isfinite(v) and v >= 0,
+            "must be seconds >= 0 (0: no progress lines)",
+        ),
+        ("--step", args.step, lambda v: v >= 0, "must be a checkpoint step >= 0"),
+        ("--score-threshold", args.score_threshold, math.isfinite, "must be a finite number"),
+    ]
+    return [
+        f"{flag} {problem}, got {value:g}"
+        for flag, value, valid, problem in checks
+        if value is not None and not valid(value)
+    ]
 
 
 def clip_sequence(index: int) -> Path:
@@ -155,11 +198,36 @@ def open_source(args: argparse.Namespace):
     return source
 
 
-def output_folder(args: argparse.Namespace, source) -> Path:
+def output_folder(args: argparse.Namespace) -> Path:
+    """``--out``, else ``W/predict/<input name>`` (``camera<N>``, clip ``000N``)."""
     if args.out:
         return Path(args.out)
-    name = Path(source.name).stem if stream_kind(args) != "camera" else f"camera{args.camera}"
+    kind = stream_kind(args)
+    if kind == "camera":
+        name = f"camera{args.camera}"
+    elif kind == "clip":
+        name = f"{args.clip:04d}"  # the sequence folder of the generated set
+    else:
+        name = Path(args.video if kind == "video" else args.sequence).stem
     return Path(args.workdir) / "predict" / (name or "stream")
+
+
+def plan_outputs(args: argparse.Namespace, source=None, clear: bool = True):
+    """The checked output paths (:func:`gac_jax.streams.output_plan.plan_outputs`; ``clear``:
+    deletes an earlier run's results with ``--overwrite``) and, given the opened ``source``,
+    the free space for a few seconds of video; before any model is loaded."""
+    from gac_jax.streams import output_plan
+
+    out = output_folder(args)
+    video = None
+    if not args.no_images:
+        video = args.out_video or out / output_plan.VIDEO_NAME
+    inputs = [p for p in (args.video, args.calib, args.plane) if p is not None]
+    plan = output_plan.plan_outputs(out, video, args.jsonl, inputs, args.overwrite, clear)
+    if source is not None:
+        h, w = source.size
+        output_plan.check_free_space(plan, h * (w + h), source.fps)
+    return plan
 
 
 def load_detector(args: argparse.Namespace):
@@ -183,26 +251,6 @@ def load_detector(args: argparse.Namespace):
     return Detector3D.from_workdir(args.workdir, step=args.step, **model)
 
 
-class _CtrlC:
-    """SIGINT during the stream: first stop reading, then drop the frames in flight."""
-
-    def __init__(self, pipeline):
-        self.pipeline = pipeline
-        self.count = 0
-
-    def __call__(self, signum, frame) -> None:
-        self.count += 1
-        if self.count == 1:
-            self.pipeline.stop()
-            print(
-                "Ctrl-C: reading stopped; finishing the frames in flight (Ctrl-C again drops them)",
-                flush=True,
-            )
-        else:
-            self.pipeline.abort()
-            print("Ctrl-C again: dropping the frames in flight", flush=True)
-
-
 def summary_lines(report, written_to: list[str], detector, threads: int) -> list[str]:
     from gac_jax.streams.rates import format_rates
 
@@ -219,7 +267,12 @@ def summary_lines(report, written_to: list[str], detector, threads: int) -> list
             f"{report.dropped_live} of {report.delivered} delivered frames dropped (the "
             "detector was busy; --realtime keeps the newest)"
         )
-    if report.interrupted:
+    if report.write_error is not None:
+        lines.append(
+            f"stopped: writing failed after {report.written} frames; those are kept "
+            f"({report.dropped_in_flight} frames in flight dropped)"
+        )
+    elif report.interrupted:
         line = f"interrupted: reading stopped after {report.delivered} frames; "
         if report.dropped_in_flight:
             line += f"{report.dropped_in_flight} frames in flight dropped"
@@ -231,41 +284,66 @@ def summary_lines(report, written_to: list[str], detector, threads: int) -> list
 
 
 def run_stream(args: argparse.Namespace, threads: int) -> int:
-    """Runs the stream command; returns the exit code (errors raise, see ``predict.main``)."""
+    """Runs the stream command; returns the exit code (errors raise, see ``predict.main``):
+    0 at the input's end, 1 when writing failed, 128 + N after stop signal N
+    (:mod:`gac_jax.streams.stop_signals`)."""
+    from gac_jax.streams.stop_signals import StartupInterrupted, StopSignals
+
+    with StopSignals(log=lambda line: print(line, flush=True)) as signals:
+        try:
+            return _run_stream(args, threads, signals)
+        except StartupInterrupted as e:
+            print(f"interrupted: {e}; nothing was written", file=sys.stderr, flush=True)
+            sys.stdout.flush()
+            # JAX's threads may be mid-compile: leave without the interpreter's teardown
+            os._exit(signals.exit_status or EXIT_INTERRUPTED)
+
+
+def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
+    import time
+
+    from gac_jax.data.io_errors import error_line
     from gac_jax.streams import outputs, sources
     from gac_jax.streams.pipeline import StreamPipeline
 
+    t_start = time.perf_counter()
     workdir = Path(args.workdir)
     if not workdir.is_dir():
         raise KittiFormatError(workdir, "workdir not found")
     if args.out_video is not None:
         outputs.check_video_path(args.out_video)
     source = open_source(args)
+    video = results = None
     try:
+        plan = plan_outputs(args, source)
+        signals.check()
+        t_load = time.perf_counter()
         detector = load_detector(args)
-        out = output_folder(args, source)
+        load_s = time.perf_counter() - t_load
+        signals.check()
         h, w = source.size
         fps = f"{source.fps:g} frames/s" if source.fps else "fps unknown"
         count = f", {source.expected_frames} frames" if source.expected_frames else ""
-        print(f"{detector.weights}: {source.name} ({w}x{h}, {fps}{count}) -> {out}", flush=True)
+        print(
+            f"{detector.weights}: {source.name} ({w}x{h}, {fps}{count}) -> {plan.folder}",
+            flush=True,
+        )
         print(detector.precision_line(), flush=True)
-        print(f"warm-up (compile): {detector.warmup():.1f} s", flush=True)
+        warmup_s = detector.warmup()
+        signals.check()
+        print(
+            f"start-up: {time.perf_counter() - t_start:.1f} s (model {load_s:.1f} s, "
+            f"warm-up/compile {warmup_s:.1f} s; not counted in the rates)",
+            flush=True,
+        )
         if args.realtime and not source.live:  # a recording replayed as a live camera
             source = sources.PacedSource(source, source.fps or DEFAULT_FPS)
-        video = None
-        if not args.no_images:
-            video = outputs.AnnotatedVideo(args.out_video or out / "annotated.mp4", source.fps)
-        if args.jsonl:
-            results = outputs.JsonlResults(out / "detections.jsonl")
+        if plan.video is not None:
+            video = outputs.AnnotatedVideo(plan.video, source.fps)
+        if plan.jsonl:
+            results = outputs.JsonlResults(plan.results)
         else:
-            results = outputs.KittiResults(out / "data")
-            earlier = len(list(results.folder.glob("*.txt"))) if results.folder.is_dir() else 0
-            if earlier:
-                print(
-                    f"note: {results.folder} already holds {earlier} result files; this run "
-                    "overwrites those of its frames and leaves the others",
-                    flush=True,
-                )
+            results = outputs.KittiResults(plan.results)
         pipeline = StreamPipeline(
             source,
             detector,
@@ -277,23 +355,43 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
             report_every=args.report_every,
             log=lambda line: print(line, flush=True),
         )
-        handler = _CtrlC(pipeline)
-        previous = signal.signal(signal.SIGINT, handler)
+        signals.check()
+        signals.pipeline = pipeline
         try:
             report = pipeline.run()
         finally:
-            signal.signal(signal.SIGINT, previous)
+            complete = pipeline.write_error is None
+            kept, close_error = [], None
             for output in (video, results):
-                if output is not None:
-                    output.close()
+                if output is None:
+                    continue
+                try:
+                    where = output.close(complete)
+                except OSError as e:
+                    close_error = close_error or e
+                    where = getattr(output, "kept", None)
+                if where is not None:
+                    kept.append(os.fspath(where))
+    except BaseException:
+        for output in (video, results):  # start-up failed: nothing of this run is kept
+            if output is not None and getattr(output, "partial", None) is not None:
+                with contextlib.suppress(OSError):
+                    output.close(False)
+        raise
     finally:
         source.close()
-    written_to = [os.fspath(video.path)] if video is not None and video.frames else []
-    written_to.append(os.fspath(getattr(results, "path", None) or results.folder))
-    for line in summary_lines(report, written_to, detector, threads):
+    for line in summary_lines(report, kept or ["nothing"], detector, threads):
         print(line, flush=True)
+    failure = report.write_error or close_error
+    if failure is not None:
+        text = error_line(failure) if isinstance(failure, OSError) else str(failure)
+        kept_line = f"; kept: {', '.join(kept)}" if kept else ""
+        print(f"error: {text}{kept_line}", file=sys.stderr, flush=True)
+        return EXIT_WRITE_FAILED
     if report.error is not None:
         raise report.error
+    if signals.signum is not None:
+        return signals.exit_status
     return EXIT_INTERRUPTED if report.interrupted else 0
 
 

@@ -41,20 +41,23 @@ carry most of the heading's int8 error.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
 import json
 import os
 import re
 import shutil
+import sys
 import tempfile
 import time
+import types
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from gac_jax.data.files import KittiFormatError, atomic_write
-from gac_jax.data.loader import plane_array
 from gac_jax.deploy.export import artifact
 from gac_jax.deploy.telemetry import import_nncf, import_openvino
 
@@ -185,8 +188,36 @@ def ir_sha256(out_dir: str | os.PathLike) -> str:
 # ----------------------------------------------------------------------------- calibration
 
 
-def calibration_source(task: str, config):
-    """``(source, transform, root)``: the run's training split and its eval transform."""
+@contextlib.contextmanager
+def children_without_main() -> Iterator[None]:
+    """Inside, worker processes that ``multiprocessing`` starts (the embedded dataset's
+    generator pool, forkserver or spawn) do not import the caller's main script.
+
+    Those start methods run the parent's ``__main__`` file again in every child (as
+    ``__mp_main__``); a user's script without an ``if __name__ == "__main__":`` guard that
+    asks for an int8 model would load, export and quantize again in each worker. The
+    workers' functions live in ``gac_jax`` modules, so the children need no main module: it
+    is swapped for an empty one while the pool starts."""
+    main = sys.modules.get("__main__")
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        if main is not None:
+            sys.modules["__main__"] = main
+
+
+def calibration_source(task: str, config, workdir: str | os.PathLike | None = None):
+    """``(source, transform, root)``: the run's training split and its eval transform; the
+    embedded dataset is looked for (and generated, if missing) in the cache the run recorded
+    (:func:`gac_jax.builders.datasets.cache_of_run`), never re-importing the main script."""
+    from gac_jax.builders.datasets import cache_of_run
+
+    with cache_of_run(workdir), children_without_main():
+        return _calibration_source(task, config)
+
+
+def _calibration_source(task: str, config):
     if task == "detect3d":
         from gac_jax.builders.datasets import prepare_dataset
         from gac_jax.builders.detect3d import eval_transform
@@ -201,11 +232,16 @@ def calibration_source(task: str, config):
     return depth.train_source(config, root), depth.eval_transform(config), root
 
 
-def calibration_frames(task: str, config, frames: int, seed: int) -> tuple[list[dict], dict]:
+def calibration_frames(
+    task: str, config, frames: int, seed: int, workdir: str | os.PathLike | None = None
+) -> tuple[list[dict], dict]:
     """``frames`` transformed training images (fewer if the split is smaller) as network
     feeds ``{'images': (1,H,W,3) float32, 'P2': (1,3,4) float32, 'plane': (1,4) float32}`` (the
-    frame's ground plane, else the config's level one), and their description."""
-    source, transform, root = calibration_source(task, config)
+    frame's ground plane, else the config's level one), and their description (``frames``:
+    how many were used). ``workdir``: the run (:func:`calibration_source`)."""
+    from gac_jax.data.loader import plane_array  # grain: imported when calibrating only
+
+    source, transform, root = calibration_source(task, config, workdir)
     if len(source) == 0:
         raise KittiFormatError(root, f"no frames in the training split {config.data.train_split}")
     rng = np.random.default_rng(seed)
@@ -366,10 +402,17 @@ def _why_rebuild(out: Path, stored: dict | None, wanted: dict) -> str | None:
     return None
 
 
-def ensure_int8(out_dir: str | os.PathLike, task: str, config, settings: Int8Settings) -> Path:
+def ensure_int8(
+    out_dir: str | os.PathLike,
+    task: str,
+    config,
+    settings: Int8Settings,
+    workdir: str | os.PathLike | None = None,
+) -> Path:
     """``out_dir/model_int8.xml`` for these settings, built (printing why) when it is
     missing, stale or damaged; ``out_dir`` must hold a checked float export
-    (:func:`gac_jax.deploy.export.sources.ensure_export`).
+    (:func:`gac_jax.deploy.export.sources.ensure_export`); ``workdir``: the run, whose
+    recorded dataset cache the calibration reads (:func:`calibration_source`).
 
     Raises:
       KittiFormatError: the calibration data cannot be read, or quantization fails (naming
@@ -377,7 +420,7 @@ def ensure_int8(out_dir: str | os.PathLike, task: str, config, settings: Int8Set
     """
     out = Path(out_dir)
     meta = artifact.read_export(out)
-    calibration = _calibration_key(task, config, settings)
+    calibration = _calibration_key(task, config, settings, workdir)
     scope = float_scope(out / artifact.MODEL_FILE, settings)
     wanted = _wanted(meta, calibration, scope)
     why = _why_rebuild(out, meta.get("int8"), wanted)
@@ -387,9 +430,12 @@ def ensure_int8(out_dir: str | os.PathLike, task: str, config, settings: Int8Set
         ov = import_openvino()
 
         check_keep_float(ov.Core().read_model(str(out / artifact.MODEL_FILE)), scope)
-    print(f"{out / INT8_MODEL}: {why}; quantizing (NNCF, {settings.frames} calibration frames)")
     t0 = time.perf_counter()
-    feeds, described = calibration_frames(task, config, settings.frames, settings.seed)
+    feeds, described = calibration_frames(task, config, settings.frames, settings.seed, workdir)
+    used = f"{len(feeds)} calibration frames"
+    if len(feeds) < settings.frames:
+        used += f" (of {settings.frames} asked: the training split has {len(feeds)})"
+    print(f"{out / INT8_MODEL}: {why}; quantizing (NNCF, {used})", flush=True)
     try:
         model = quantize_model(out / artifact.MODEL_FILE, feeds, scope)
     except ValueError:  # a keep_float pattern that matches nothing: the caller's message
@@ -417,9 +463,9 @@ def ensure_int8(out_dir: str | os.PathLike, task: str, config, settings: Int8Set
     return out / INT8_MODEL
 
 
-def _calibration_key(task: str, config, settings: Int8Settings) -> dict:
+def _calibration_key(task: str, config, settings: Int8Settings, workdir=None) -> dict:
     """What selects the calibration frames (compared on use): split, data root, count, seed."""
-    _, _, root = calibration_source(task, config)
+    _, _, root = calibration_source(task, config, workdir)
     return {
         "split": config.data.train_split,
         "data_root": str(Path(root).resolve()),

@@ -90,7 +90,9 @@ def network_file(
         from gac_jax.deploy.int8 import ensure_int8
 
         try:
-            return ensure_int8(out, source.task, source.config, int8 or Int8Settings())
+            return ensure_int8(
+                out, source.task, source.config, int8 or Int8Settings(), source.workdir
+            )
         except ValueError as e:
             if isinstance(e, KittiFormatError):
                 raise

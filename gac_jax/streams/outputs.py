@@ -1,19 +1,30 @@
 """What a stream writes: the annotated video and the per-frame results, as frames finish.
 
-* :class:`AnnotatedVideo`: ``cv2.VideoWriter`` at the input's fps, codec by the container
-  suffix (:data:`CODECS`: ``.mp4``/``.m4v``/``.mov`` MPEG-4 part 2 ``mp4v``, ``.avi``/``.mkv``
-  Motion JPEG). It is written to a hidden ``.<name>.partial<suffix>`` beside the target and
-  renamed when released, so an earlier video of the same name stays whole until the new one is.
-  Frames of an odd size get a black row / column at the bottom / right (FFmpeg's MPEG-4 and
-  Motion JPEG encoders would cut them).
+Every write is checked; a failed one raises an ``OSError`` naming the file and the cause
+(no space left, permission denied), and what was written before stays valid:
+
+* :class:`AnnotatedVideo`: ``.mp4``/``.m4v``/``.mov`` are fragmented MP4 files of JPEG frames
+  (:mod:`gac_jax.streams.mp4_fragments`, which says why not OpenCV's writer): the file is a
+  playable video of the frames written so far at every moment, after a full disk or a kill
+  too. ``.avi``/``.mkv`` are Motion JPEG through ``cv2.VideoWriter`` (a failed frame is
+  detected, but only a clean close leaves a playable file). The video is written to a hidden
+  ``.<name>.partial<suffix>`` beside the target and renamed into place when the stream ends
+  (at its end or when stopped by Ctrl-C, SIGTERM, SIGHUP), so an earlier video of the same
+  name is only replaced by a complete one; after a failed write the frames written so far
+  are kept as ``<name>.incomplete<suffix>`` and an earlier video stays as it was.
 * :class:`KittiResults`: ``DIR/<frame id>.txt`` per frame (KITTI result lines with scores,
   written atomically), the files ``python -m gac_jax.cli.predict IMAGE_DIR`` writes.
-* :class:`JsonlResults`: one JSON object per frame and line, flushed per frame (``.partial``
-  until closed, like the video).
+* :class:`JsonlResults`: one JSON object per frame and line, each line written whole or cut
+  off again (the file always ends on a whole line); ``.partial`` until closed, like the video.
+
+Frames of the video and result files are written in the same order, the video first; when a
+frame's results cannot be written its video frame is cut off again (MP4), so the video and
+the results hold the same frames.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 from pathlib import Path
@@ -22,15 +33,24 @@ import cv2
 import numpy as np
 
 from gac_jax.data.files import KittiFormatError
+from gac_jax.data.io_errors import free_bytes
 from gac_jax.data.kitti import KittiObjects, write_label
+from gac_jax.streams.mp4_fragments import FragmentedJpegMp4
 
-CODECS = {".mp4": "mp4v", ".m4v": "mp4v", ".mov": "mp4v", ".avi": "MJPG", ".mkv": "MJPG"}
+CODECS = {".mp4": "jpeg", ".m4v": "jpeg", ".mov": "jpeg", ".avi": "MJPG", ".mkv": "MJPG"}
+FRAGMENTED = (".mp4", ".m4v", ".mov")  # written by mp4_fragments, the others by OpenCV
+JPEG_QUALITY = 90
 DEFAULT_FPS = 10.0  # when the input does not say (a camera without the property)
 
 
 def partial_path(path: Path) -> Path:
     """``dir/.name.partial.suffix``: where ``path`` is written until it is complete."""
     return path.with_name(f".{path.stem}.partial{path.suffix}")
+
+
+def incomplete_path(path: Path) -> Path:
+    """``dir/name.incomplete.suffix``: what a failed write keeps of ``path``."""
+    return path.with_name(f"{path.stem}.incomplete{path.suffix}")
 
 
 def check_video_path(path: str | os.PathLike) -> Path:
@@ -42,8 +62,19 @@ def check_video_path(path: str | os.PathLike) -> Path:
     return path
 
 
+def _keep(partial: Path, path: Path, complete: bool, frames: int) -> Path | None:
+    """Renames ``partial`` to ``path`` (complete) or to its incomplete name; deletes it when it
+    holds no frame. Returns where the frames are (None: nowhere)."""
+    if frames == 0:
+        partial.unlink(missing_ok=True)
+        return None
+    target = path if complete else incomplete_path(path)
+    os.replace(partial, target)
+    return target
+
+
 class AnnotatedVideo:
-    """Writes RGB pictures as video frames (the writer opens at the first picture's size).
+    """Writes RGB pictures as video frames (the file opens at the first picture's size).
 
     Args:
       path: the video (container by suffix, :data:`CODECS`).
@@ -54,39 +85,95 @@ class AnnotatedVideo:
         self.path = check_video_path(path)
         self.fps = fps or DEFAULT_FPS
         self.partial = partial_path(self.path)
-        self.frames = 0
+        self.kept: Path | None = None  # where close() left the frames
         self.size: tuple[int, int] | None = None
+        self._mp4: FragmentedJpegMp4 | None = None
         self._writer: cv2.VideoWriter | None = None
-        self._pad = (0, 0)  # rows, columns added at the bottom / right
+        self._frames = 0
+        self._closed = False
+        self._pad = (0, 0)  # rows, columns added at the bottom / right (OpenCV's codecs)
+
+    @property
+    def frames(self) -> int:
+        return self._mp4.frames if self._mp4 is not None else self._frames
+
+    def _open(self, h: int, w: int) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.size = (h, w)
+        if self.path.suffix.lower() in FRAGMENTED:
+            try:
+                self._mp4 = FragmentedJpegMp4(self.partial, self.fps, (w, h))
+            except OSError as e:
+                self.partial.unlink(missing_ok=True)
+                raise OSError(e.errno, e.strerror, os.fspath(self.path)) from None
+            return
+        # the codecs want even sizes (FFmpeg would cut the last row / column): pad instead
+        self._pad = (h % 2, w % 2)
+        size = (w + self._pad[1], h + self._pad[0])
+        fourcc = cv2.VideoWriter_fourcc(*CODECS[self.path.suffix.lower()])
+        self._writer = cv2.VideoWriter(os.fspath(self.partial), fourcc, self.fps, size)
+        if not self._writer.isOpened():
+            raise KittiFormatError(self.path, f"OpenCV cannot write this video ({w}x{h})")
 
     def write(self, rgb: np.ndarray) -> None:
+        """Appends one picture (H, W, 3) uint8 RGB; raises ``OSError`` naming the file when
+        it cannot be written (the frames before it stay)."""
         h, w = rgb.shape[:2]
-        if self._writer is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            codec = CODECS[self.path.suffix.lower()]
-            # the codecs want even sizes (FFmpeg would cut the last row / column): pad instead
-            self._pad = (h % 2, w % 2)
-            size = (w + self._pad[1], h + self._pad[0])
-            fourcc = cv2.VideoWriter_fourcc(*codec)
-            self._writer = cv2.VideoWriter(os.fspath(self.partial), fourcc, self.fps, size)
-            if not self._writer.isOpened():
-                raise KittiFormatError(self.path, f"OpenCV cannot write this video ({w}x{h})")
-            self.size = (h, w)
+        if self.size is None:
+            self._open(h, w)
         if (h, w) != self.size:
             raise ValueError(f"picture of {w}x{h} in a video of {self.size[1]}x{self.size[0]}")
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+        if self._mp4 is not None:
+            ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+            if not ok:
+                raise ValueError(f"cannot encode a {w}x{h} picture as JPEG")
+            try:
+                self._mp4.append(jpeg.tobytes())
+            except OSError as e:  # named for the user: the video, not its hidden partial
+                raise OSError(e.errno, e.strerror, os.fspath(self.path)) from None
+            return
         if self._pad != (0, 0):
             bgr = cv2.copyMakeBorder(bgr, 0, self._pad[0], 0, self._pad[1], cv2.BORDER_CONSTANT)
-        self._writer.write(bgr)
-        self.frames += 1
+        if not self._writer.write(bgr):
+            raise _write_failed(self.path)
+        self._frames += 1
 
-    def close(self) -> None:
-        """Releases the writer (the video is then playable) and renames it into place."""
-        if self._writer is None:
-            return
-        self._writer.release()
-        self._writer = None
-        os.replace(self.partial, self.path)
+    def drop_last(self) -> bool:
+        """Cuts the last frame off again (MP4 only); False when the container cannot."""
+        if self._mp4 is None:
+            return False
+        self._mp4.drop_last()
+        return True
+
+    def close(self, complete: bool = True) -> Path | None:
+        """Finishes the file and renames it: into place when ``complete`` (the stream ended or
+        was stopped), else to ``<name>.incomplete<suffix>``. Returns where the frames are
+        (None: no frame was written). Idempotent."""
+        if self._closed:
+            return self.kept
+        self._closed = True
+        if self._mp4 is not None:
+            try:
+                self._mp4.close()
+            except OSError:
+                complete = False  # the frames are whole; the duration may be missing
+                self.kept = _keep(self.partial, self.path, complete, self.frames)
+                raise
+        elif self._writer is not None:
+            self._writer.release()
+            self._writer = None
+        elif self.frames == 0:
+            return None
+        self.kept = _keep(self.partial, self.path, complete, self.frames)
+        return self.kept
+
+
+def _write_failed(path: Path) -> OSError:
+    """OpenCV says only that a frame was not written: a full disk is the likely cause."""
+    free = free_bytes(path)
+    code = errno.ENOSPC if free is not None and free < (1 << 20) else errno.EIO
+    return OSError(code, os.strerror(code), os.fspath(path))
 
 
 class KittiResults:
@@ -96,36 +183,59 @@ class KittiResults:
         self.folder = Path(folder)
         self.frames = 0
 
+    @property
+    def location(self) -> Path:
+        return self.folder
+
     def write(self, frame_id: str, index: int, objects: KittiObjects, record: dict) -> None:
         write_label(self.folder / f"{frame_id}.txt", objects, with_score=True)
         self.frames += 1
 
-    def close(self) -> None:
-        pass
+    def close(self, complete: bool = True) -> Path:
+        return self.folder
 
 
 class JsonlResults:
     """One line per frame: ``{"frame": id, "index": i, **record}`` (``record``: the detections'
-    ``to_dict()``), flushed as each frame finishes."""
+    ``to_dict()``), written as each frame finishes; a line is written whole or not at all."""
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
         self.partial = partial_path(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.partial, "w", encoding="utf-8")  # noqa: SIM115 (closed in close)
+        self._fd = os.open(self.partial, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+        self._end = 0
         self.frames = 0
+        self.kept: Path | None = None
+
+    @property
+    def location(self) -> Path:
+        return self.path
 
     def write(self, frame_id: str, index: int, objects: KittiObjects, record: dict) -> None:
         line = json.dumps({"frame": frame_id, "index": index, **record}, default=_plain)
-        self._file.write(line + "\n")
-        self._file.flush()
+        data = memoryview((line + "\n").encode())
+        done = 0
+        try:
+            while done < len(data):
+                done += os.pwrite(self._fd, data[done:], self._end + done)
+        except OSError as e:
+            os.ftruncate(self._fd, self._end)  # the file ends on the last whole line
+            raise OSError(e.errno, e.strerror, os.fspath(self.path)) from None
+        self._end += len(data)
         self.frames += 1
 
-    def close(self) -> None:
-        if self._file.closed:
-            return
-        self._file.close()
-        os.replace(self.partial, self.path)
+    def close(self, complete: bool = True) -> Path | None:
+        """Closes and renames (as :meth:`AnnotatedVideo.close`)."""
+        if self._fd < 0:
+            return self.kept
+        try:
+            os.fsync(self._fd)
+        finally:
+            os.close(self._fd)
+            self._fd = -1
+        self.kept = _keep(self.partial, self.path, complete, self.frames)
+        return self.kept
 
 
 def _plain(value):

@@ -13,7 +13,9 @@ newest frame there is), and the frames they replaced are counted as dropped.
 :meth:`StreamPipeline.stop` (first Ctrl-C) stops reading and lets the frames in flight
 finish; :meth:`StreamPipeline.abort` (second Ctrl-C, or a failing stage) drops them. Either
 way the caller closes the outputs afterwards, so the video is playable and every finished
-frame is written. Always ``delivered == written + dropped_live + dropped_in_flight``.
+frame is written. A failed write of an output (a full disk) ends the stream as an abort does,
+with the frames written before it kept (:mod:`gac_jax.streams.outputs`). Always
+``delivered == written + dropped_live + dropped_in_flight``.
 
 ``detector`` is any object with ``prepare(image, P2, plane)``, ``infer(prepared_list)`` and
 ``finish(raw, prepared_list) -> detections`` (:class:`gac_jax.api.Detector3D`); a detection
@@ -87,7 +89,8 @@ class StreamReport:
       frames in flight when reading stopped that were then finished; interrupted: stopped
       before the source ended; rates: :meth:`StreamRates.summary`; error: the first failure
       (a stage's exception, or the source's report of a damaged input), None if none;
-      stage_ms: :meth:`StreamPipeline.stage_ms`.
+      write_error: the failed write of an output that ended the stream (also ``error``), None
+      if none; stage_ms: :meth:`StreamPipeline.stage_ms`.
     """
 
     delivered: int
@@ -98,6 +101,7 @@ class StreamReport:
     interrupted: bool
     rates: dict
     error: BaseException | None = None
+    write_error: BaseException | None = None
     stage_ms: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
@@ -152,6 +156,8 @@ class StreamPipeline:
         self.written_at_stop: int | None = None
         self._source_ended = False
         self.errors: list[BaseException] = []
+        self.write_error: BaseException | None = None  # a failed write of an output
+        self.t_start = 0.0  # when run() began: latency and rates count from here
         self.busy_s = [0.0] * len(STAGE_NAMES)  # wall seconds each stage worked
         self.cpu_s = [0.0] * len(STAGE_NAMES)  # CPU seconds of each stage's own thread
 
@@ -317,20 +323,32 @@ class StreamPipeline:
             for k, (frame, (det, objects, picture)) in enumerate(zip(frames, drawn, strict=True)):
                 t0 = (time.perf_counter(), time.thread_time())
                 try:
-                    if self.video is not None:
-                        self.video.write(picture)
-                    if self.results is not None:
-                        record = det.to_dict() if needs_record else {}
-                        self.results.write(frame.frame_id, frame.index, objects, record)
+                    self._write_frame(frame, det, objects, picture, needs_record)
                 except Exception as e:
                     self._drop(frames[k:])
+                    self.write_error = e
                     self._fail(e, WRITE)
                     failed = True
                     break
-                self.rates.frame_written(frame.t_read)
+                self.rates.frame_written(max(frame.t_read, self.t_start))
                 self._busy(WRITE, t0)
                 with self._lock:
                     self.written += 1
+
+    def _write_frame(self, frame: Frame, det, objects, picture, needs_record: bool) -> None:
+        """The frame's picture, then its results; when the results fail the picture is cut
+        off again where the container allows, so the video holds the frames with results."""
+        if self.video is not None:
+            self.video.write(picture)
+        if self.results is None:
+            return
+        record = det.to_dict() if needs_record else {}
+        try:
+            self.results.write(frame.frame_id, frame.index, objects, record)
+        except BaseException:
+            if self.video is not None:
+                self.video.drop_last()
+            raise
 
     # ------------------------------------------------------------------ run
 
@@ -361,6 +379,7 @@ class StreamPipeline:
             threading.Thread(target=fn, args=args, name=f"gac-stream-{name}", daemon=True)
             for name, fn, args in stages
         ]
+        self.t_start = time.perf_counter()  # frames read during start-up wait from here
         for t in threads:
             t.start()
         next_report = time.perf_counter() + self.report_every
@@ -380,8 +399,9 @@ class StreamPipeline:
             dropped_live=dropped_live,
             dropped_in_flight=self.dropped_in_flight,
             finished_after_stop=finished,
-            interrupted=interrupted and not self._source_ended,
+            interrupted=interrupted and not self._source_ended and self.write_error is None,
             rates=self.rates.summary(),
             error=self.errors[0] if self.errors else None,
+            write_error=self.write_error,
             stage_ms=self.stage_ms(),
         )

@@ -1,8 +1,10 @@
 """Sustained frames/s and per-frame latency of a stream (thread-safe).
 
-A frame's latency runs from the moment reading (decoding) of it began to the moment its
-annotated picture and results were written. The sustained rate is frames written per second
-of wall time from the first frame's read to the last frame's write (pipeline fill included).
+A frame's latency runs from the moment reading (decoding) of it began, or from the moment the
+stream started after the start-up (model loading, export, warm-up) for a frame read before,
+to the moment its annotated picture and results were written. The sustained rate is frames
+written per second of wall time from the first frame's start to the last frame's write
+(pipeline fill included, start-up not: the caller reports that on its own line).
 """
 
 from __future__ import annotations
@@ -72,7 +74,10 @@ class StreamRates:
 
 
 def format_rates(s: dict[str, float]) -> str:
-    """``"12.3 frames/s, latency median 81 ms, p95 95 ms"`` of a :meth:`StreamRates.summary`."""
+    """``"12.3 frames/s, latency median 81 ms, p95 95 ms"`` of a :meth:`StreamRates.summary`
+    (``"0 frames/s"`` when none was written: no latency to tell)."""
+    if not s["frames"]:
+        return "0 frames/s"
     return (
         f"{s['fps']:.1f} frames/s, latency median {s['latency_median_ms']:.0f} ms, "
         f"p95 {s['latency_p95_ms']:.0f} ms"

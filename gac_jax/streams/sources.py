@@ -31,12 +31,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gac_jax.api.inputs import InputError, check_fits, check_projection
 from gac_jax.data.files import KittiFormatError, read_image
 from gac_jax.data.kitti import read_calib, read_plane
 from gac_jax.data.kitti_tracking import KittiTrackingLayout
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-CENTRE_BAND = 0.6  # the principal point must lie in the middle 60 % of each image axis
 
 
 def quiet_video_backend() -> None:
@@ -79,29 +79,15 @@ def load_projection(path: str | os.PathLike, camera: int = 2) -> np.ndarray:
 
 
 def check_calibration(P2: np.ndarray, size: tuple[int, int], calib: str, frames: str) -> None:
-    """Raises if ``P2`` cannot be the calibration of ``frames`` of ``size = (H, W)``.
-
-    The principal point ``(P2[0, 2], P2[1, 2])`` must lie in the frame, and in its middle
-    :data:`CENTRE_BAND` along each axis: a point near an edge means a calibration of another
-    image size (KITTI's 1242 x 375 one on a 640 x 480 camera puts it at u = 609 of 640).
+    """Raises :class:`KittiFormatError` naming ``calib`` if ``P2`` cannot be the calibration of
+    ``frames`` of ``size = (H, W)``: the API's checks (:func:`gac_jax.api.inputs.check_projection`,
+    :func:`~gac_jax.api.inputs.check_fits`), with the principal point in the middle of the
+    frame.
     """
-    h, w = size
-    cu, cv = float(P2[0, 2]), float(P2[1, 2])
-    where = f"the {w}x{h} frames of {frames}"
-    if not (0 <= cu <= w - 1 and 0 <= cv <= h - 1):
-        raise KittiFormatError(
-            calib,
-            f"does not fit {where}: P2's principal point ({cu:.1f}, {cv:.1f}) is outside "
-            "the frame (a calibration of another image size?)",
-        )
-    lo, hi = (1 - CENTRE_BAND) / 2, (1 + CENTRE_BAND) / 2
-    if not (lo * w <= cu <= hi * w and lo * h <= cv <= hi * h):
-        raise KittiFormatError(
-            calib,
-            f"does not fit {where}: P2's principal point ({cu:.1f}, {cv:.1f}) is far from "
-            f"the centre (expected within the middle {CENTRE_BAND:.0%} of each axis; a "
-            "calibration of another image size?)",
-        )
+    try:
+        check_fits(check_projection(P2), size, what=f"frames of {frames}", centre_band=True)
+    except InputError as e:
+        raise KittiFormatError(calib, e.problem) from None
 
 
 def _check_size(image: np.ndarray, size: tuple[int, int], where: str, what: str) -> None:
@@ -194,6 +180,9 @@ class CameraSource:
 
     def __init__(self, index: int, P2: np.ndarray, calib: str, plane: np.ndarray | None = None):
         self.name = f"camera {index}"
+        if isinstance(index, bool) or not isinstance(index, int) or index < 0:
+            # OpenCV takes -1 as "any camera" and some backends crash on it
+            raise KittiFormatError(self.name, "a camera index is an integer >= 0")
         self._capture = cv2.VideoCapture(index)
         if not self._capture.isOpened():
             raise KittiFormatError(

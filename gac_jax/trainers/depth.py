@@ -35,6 +35,7 @@ import jax
 import ml_collections
 import numpy as np
 
+from gac_jax.builders.datasets import record_cache
 from gac_jax.builders.depth import (
     PRIOR_FILE,
     build_model,
@@ -191,6 +192,7 @@ def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dic
     if is_main:
         workdir.mkdir(parents=True, exist_ok=True)
         save_config(config, workdir)
+        record_cache(workdir)  # int8 calibration later reads the same dataset
     multiprocess.check_shared_directory(workdir)
 
     # Mesh.

@@ -15,7 +15,7 @@ from pathlib import Path
 import jax
 import ml_collections
 
-from gac_jax.builders.datasets import prepare_dataset
+from gac_jax.builders.datasets import prepare_dataset, record_cache
 from gac_jax.builders.detect3d import (
     anchor_layout,
     build_model,
@@ -118,6 +118,7 @@ def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dic
     if is_main:
         workdir.mkdir(parents=True, exist_ok=True)
         save_config(config, workdir)
+        record_cache(workdir)  # int8 calibration later reads the same dataset
     multiprocess.check_shared_directory(workdir)
 
     # Mesh.

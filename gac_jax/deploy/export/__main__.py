@@ -94,7 +94,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             meta = export_source(source, args.out, args.opset)
             if int8 is not None:
-                ensure_int8(args.out, source.task, source.config, int8)
+                ensure_int8(args.out, source.task, source.config, int8, source.workdir)
     except ExportError as e:
         print(f"error: {args.workdir or args.checkpoint}: {e}", file=sys.stderr)
         return EXIT_INVALID_INPUT
