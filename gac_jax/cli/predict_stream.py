@@ -26,6 +26,7 @@ import signal
 import sys
 from pathlib import Path
 
+from gac_jax.cli import predict_track
 from gac_jax.data.files import KittiFormatError
 
 STREAM_SOURCES = ("video", "camera", "sequence", "clip")
@@ -62,6 +63,7 @@ def add_stream_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--fps", type=float, help="frame rate of a sequence (default 10)")
     group.add_argument("--max-frames", type=int, help="stop after this many frames")
     group.add_argument("--report-every", type=float, default=5.0, help="seconds per line")
+    predict_track.add_tracking_arguments(group)
 
 
 def stream_kind(args: argparse.Namespace) -> str | None:
@@ -72,6 +74,7 @@ def stream_kind(args: argparse.Namespace) -> str | None:
 
 def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     given = [f"--{k}" for k in STREAM_SOURCES if getattr(args, k) is not None]
+    predict_track.check_tracking_arguments(parser, args)
     if args.input is not None and args.camera is not None:
         parser.error(
             "--camera INDEX opens a live camera; the P2/P3 choice of image input is "
@@ -242,6 +245,7 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
         outputs.check_video_path(args.out_video)
     source = open_source(args)
     try:
+        poses = predict_track.stream_poses(args, source) if args.track else None
         detector = load_detector(args)
         out = output_folder(args, source)
         h, w = source.size
@@ -255,7 +259,11 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
         video = None
         if not args.no_images:
             video = outputs.AnnotatedVideo(args.out_video or out / "annotated.mp4", source.fps)
-        if args.jsonl:
+        track = None
+        if args.track:
+            fps = source.fps or DEFAULT_FPS
+            results, track = predict_track.tracking_outputs(args, source, out, detector, poses, fps)
+        elif args.jsonl:
             results = outputs.JsonlResults(out / "detections.jsonl")
         else:
             results = outputs.KittiResults(out / "data")
@@ -276,6 +284,7 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
             max_frames=args.max_frames,
             report_every=args.report_every,
             log=lambda line: print(line, flush=True),
+            track=track,
         )
         handler = _CtrlC(pipeline)
         previous = signal.signal(signal.SIGINT, handler)
