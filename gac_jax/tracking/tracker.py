@@ -26,7 +26,6 @@ plane:
 
 from __future__ import annotations
 
-import collections
 import math
 
 import numpy as np
@@ -130,7 +129,9 @@ class Tracker:
         self.hits = np.zeros(0, np.int64)
         self.misses = np.zeros(0, np.int64)
         self.ages = np.zeros(0, np.int64)
-        self.trails: list[collections.deque] = []
+        # the last trail_length positions of each track (oldest first), how many are set
+        self.trail = np.zeros((0, self.params.trail_length, 3))
+        self.trail_count = np.zeros(0, np.int64)
 
     @property
     def num_tracks(self) -> int:
@@ -192,9 +193,10 @@ class Tracker:
         born = np.ones(len(det), bool)
         born[cols] = False
         self._birth(det.select(born), z[born], Rw[born], det_yaw[born])
-        for k in range(self.num_tracks):
-            if self.misses[k] == 0:
-                self.trails[k].append(self.x[k, :3].copy())
+        seen = self.misses == 0
+        self.trail[seen] = np.roll(self.trail[seen], -1, axis=1)
+        self.trail[seen, -1] = self.x[seen, :3]
+        self.trail_count[seen] = np.minimum(self.trail_count[seen] + 1, self.params.trail_length)
         return self._report(pose, plane)
 
     def _associate(self, det: DetectionArrays, z: np.ndarray, pose: np.ndarray):
@@ -208,8 +210,8 @@ class Tracker:
         S = self.P[:, :3, :3] + pose[:, :3] @ R_track @ pose[:, :3].T
         d2 = association.mahalanobis_costs(self.x[:, :3], S, z)
         rows, cols = association.assign(d2, same_class & (d2 <= p.gate_chi2))
-        free_t = np.setdiff1d(np.arange(self.num_tracks), rows)
-        free_d = np.setdiff1d(np.arange(len(det)), cols)
+        free_t = np.flatnonzero(~np.isin(np.arange(self.num_tracks), rows))
+        free_d = np.flatnonzero(~np.isin(np.arange(len(det)), cols))
         if len(free_t) and len(free_d):
             iou = association.box_iou_matrix(self.boxes[free_t], det.boxes_2d[free_d])
             ok = same_class[np.ix_(free_t, free_d)] & (iou >= p.min_iou_2d)
@@ -254,9 +256,8 @@ class Tracker:
     def _keep(self, keep: np.ndarray) -> None:
         for name in ("ids", "names", "x", "P", "yaw", "yaw_var", "dims", "size_count"):
             setattr(self, name, getattr(self, name)[keep])
-        for name in ("scores", "boxes", "hits", "misses", "ages"):
+        for name in ("scores", "boxes", "hits", "misses", "ages", "trail", "trail_count"):
             setattr(self, name, getattr(self, name)[keep])
-        self.trails = [t for t, k in zip(self.trails, keep, strict=True) if k]
 
     def _birth(self, det: DetectionArrays, z, Rw, det_yaw) -> None:
         n = len(det)
@@ -277,12 +278,12 @@ class Tracker:
             "hits": np.ones(n, np.int64),
             "misses": np.zeros(n, np.int64),
             "ages": np.zeros(n, np.int64),
+            "trail": np.zeros((n, self.params.trail_length, 3)),
+            "trail_count": np.zeros(n, np.int64),
         }
         self.next_id += n
         for name, value in new.items():
             setattr(self, name, np.concatenate([getattr(self, name), value]))
-        length = self.params.trail_length
-        self.trails.extend(collections.deque(maxlen=length) for _ in range(n))
 
     def _report(self, pose: np.ndarray, plane: np.ndarray | None) -> TrackedObjects:
         """The tracks matched in this frame with enough hits, in the camera frame."""
@@ -296,9 +297,11 @@ class Tracker:
             locations = on_plane(locations, plane)
         velocities = self.x[shown, 3:] @ R  # R^T v
         cov = R.T @ self.P[shown, 3:, 3:] @ R
-        trails = [to_camera(np.array(self.trails[k]), pose) for k in shown]
+        trail = to_camera(self.trail[shown], pose)  # (S, L, 3)
         if plane is not None:
-            trails = [on_plane(t, plane) for t in trails]
+            trail = on_plane(trail.reshape(-1, 3), plane).reshape(trail.shape)
+        length = self.params.trail_length
+        trails = [trail[i, length - c :] for i, c in enumerate(self.trail_count[shown].tolist())]
         return TrackedObjects(
             ids=self.ids[shown],
             names=self.names[shown],
