@@ -1,6 +1,6 @@
-"""python -m gac_jax.cli.predict --clip/--sequence --track: one KITTI tracking result file per
-sequence and a playable annotated video from the tiny trained detector; a pose file with the
-wrong number of frames gives one line naming it and exit 2."""
+"""python -m gac_jax.cli.predict --sequence --track on a generated clip: one KITTI tracking
+result file per sequence and a playable annotated video from the tiny trained detector; a pose
+file with the wrong number of frames gives one line naming it and exit 2."""
 
 from __future__ import annotations
 
@@ -13,24 +13,24 @@ from gac_jax.cli import predict
 
 
 @pytest.fixture
-def small_clip_set(tmp_path, monkeypatch) -> Path:
-    """``--clip`` generates a 1-sequence, 5-frame set into a temporary cache."""
-    from gac_jax.cli import predict_stream
+def clip_sequence(tmp_path) -> Path:
+    """A generated clip set of one 5-frame sequence (188 x 621), its image folder."""
+    from gac_jax.data.synthetic.clips import generate_clips
 
-    monkeypatch.setenv("GAC_JAX_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setattr(predict_stream, "CLIP_SEQUENCES", 1)
-    monkeypatch.setattr(predict_stream, "CLIP_FRAMES", 5)
-    return predict_stream.clip_sequence(0)
+    generate_clips(tmp_path / "clips", 1, 5, seed=0, height=188, width=621, workers=1)
+    return tmp_path / "clips" / "training" / "image_02" / "0000"
 
 
 def test_track_on_a_clip_writes_a_tracking_file_and_a_video(
-    tiny_detect3d_workdir, small_clip_set, tmp_path, capsys
+    tiny_detect3d_workdir, clip_sequence, tmp_path, capsys
 ):
-    """Every line of ``tracking/0000.txt`` has the KITTI tracking result format (frame in
+    """A generated clip as a KITTI tracking sequence (calibration, planes and poses found by
+    themselves). Every line of ``tracking/0000.txt`` has the KITTI tracking result format (frame in
     0..4, integer id, a class, ``-1 -1``, 13 numbers); a track id keeps its class; the video
     has the 5 frames, camera view + bird's-eye view."""
     out = tmp_path / "out"
-    argv = ["--workdir", tiny_detect3d_workdir, "--clip", "--track", "--out", out]
+    argv = ["--workdir", tiny_detect3d_workdir, "--sequence", clip_sequence, "--track"]
+    argv += ["--out", out]
     code = predict.main([str(a) for a in argv])
     stdout, err = capsys.readouterr()
     assert code == 0, err
@@ -52,7 +52,7 @@ def test_track_on_a_clip_writes_a_tracking_file_and_a_video(
     while capture.read()[0]:
         count += 1
     assert count == 5
-    assert capture.get(cv2.CAP_PROP_FRAME_WIDTH) > 1242
+    assert capture.get(cv2.CAP_PROP_FRAME_WIDTH) > 621  # camera view + bird's-eye view
     assert "tracking/0000.txt" in stdout
 
 

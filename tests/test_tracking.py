@@ -216,3 +216,26 @@ def test_kitti_tracking_lines_and_dict():
     assert float(fields[16]) == pytest.approx(0.3) and float(fields[17]) == pytest.approx(0.9)
     record = tracks.to_dict()["objects"][0]
     assert record["track_id"] == 0 and record["speed"] == 0.0 and record["hits"] == 1
+
+
+@pytest.mark.parametrize("realtime", [True, False])
+def test_a_live_stream_tracks_with_the_times_frames_were_read(realtime):
+    """The stream's tracking stage: live, a frame's time is when it was read (a camera that
+    delivered frames 0.1-0.5 s apart: the car's 8 m/s is measured); from a file, ``index /
+    fps`` (the same frames then look 0.1 s apart: the speed comes out wrong)."""
+    from gac_jax import Tracker3D
+    from gac_jax.streams.sources import Frame
+    from gac_jax.streams.tracking import TrackingStage
+
+    stage = TrackingStage(Tracker3D(), fps=10.0, realtime=realtime)
+    P2 = np.array([[700.0, 0, 600, 0], [0, 700, 180, 0], [0, 0, 1, 0]])
+    image = np.zeros((8, 8, 3), np.uint8)
+    times = [0.0, 0.1, 0.2, 0.6, 0.7, 1.2, 1.3, 1.4, 1.9, 2.0, 2.1, 2.6, 2.7]
+    for i, t in enumerate(times):
+        frame = Frame(i, f"{i:06d}", image, P2, None, t_read=1000.0 + t)
+        tracks = stage.update(frame, objects([[2.0, 1.6, 10.0 + 8.0 * t]], [-np.pi / 2]))
+    speed = float(tracks.speeds[0])
+    if realtime:
+        assert speed == pytest.approx(8.0, abs=0.5)
+    else:
+        assert speed > 12.0

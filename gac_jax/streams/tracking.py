@@ -21,7 +21,7 @@ import numpy as np
 from gac_jax.api.tracker import Tracker3D
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.evaluation.track_pictures import track_picture
-from gac_jax.streams.outputs import partial_path
+from gac_jax.streams.outputs import JsonlResults
 from gac_jax.streams.sources import Frame
 from gac_jax.tracking.tracks import kitti_tracking_lines
 
@@ -60,31 +60,20 @@ class TrackingStage:
         return track_picture(frame.image, frame.P2, tracks)
 
 
-class KittiTrackingResults:
-    """``folder/<sequence>.txt``: the KITTI tracking result lines of every frame (module doc).
-
-    ``write`` takes what the pipeline gives a results writer: the tracks' ``objects``
-    (:class:`KittiObjects`) and ``record`` (their ``to_dict()``, holding the ids)."""
+class KittiTrackingResults(JsonlResults):
+    """``folder/<sequence>.txt``: the KITTI tracking result lines of every frame (module doc),
+    appended and flushed per frame as :class:`~gac_jax.streams.outputs.JsonlResults` writes
+    its lines. ``write`` takes what the pipeline gives a results writer: the tracks'
+    ``objects`` (:class:`KittiObjects`) and ``record`` (their ``to_dict()``, with the ids)."""
 
     needs_record = True
 
     def __init__(self, folder: str | os.PathLike, sequence: str):
-        self.path = Path(folder) / f"{sequence}.txt"
-        self.partial = partial_path(self.path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.partial, "w", encoding="utf-8")  # noqa: SIM115 (closed in close)
-        self.frames = 0
+        super().__init__(Path(folder) / f"{sequence}.txt")
 
     def write(self, frame_id: str, index: int, objects: KittiObjects, record: dict) -> None:
-        frame = frame_number(frame_id, index)
-        ids = [obj["track_id"] for obj in record["objects"]]
-        lines = kitti_tracking_lines(frame, np.array(ids, np.int64), objects)
+        ids = np.array([obj["track_id"] for obj in record["objects"]], np.int64)
+        lines = kitti_tracking_lines(frame_number(frame_id, index), ids, objects)
         self._file.write("".join(line + "\n" for line in lines))
         self._file.flush()
         self.frames += 1
-
-    def close(self) -> None:
-        if self._file.closed:
-            return
-        self._file.close()
-        os.replace(self.partial, self.path)

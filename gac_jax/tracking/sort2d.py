@@ -14,8 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from gac_jax.tracking import association, kalman
-from gac_jax.tracking.params import TrackerParams
-from gac_jax.tracking.tracker import FrameClock
+from gac_jax.tracking.clock import StreamTracker
 from gac_jax.tracking.tracks import DetectionArrays, TrackedObjects
 
 BOX_STD = 0.05  # a detected box's error, as a fraction of its size (plus 1 pixel)
@@ -47,18 +46,12 @@ def _box_covariance(state: np.ndarray) -> np.ndarray:
     return np.einsum("ni,ij->nij", std**2, np.eye(4))
 
 
-class Sort2DTracker:
+class Sort2DTracker(StreamTracker):
     """SORT-style 2D IoU tracker (module doc); same ``update`` as
     :class:`~gac_jax.tracking.tracker.Tracker` (``pose`` and ``plane`` are not used)."""
 
-    def __init__(self, params: TrackerParams | None = None):
-        self.params = params or TrackerParams()
-        self.reset()
-
     def reset(self) -> None:
-        self.clock = FrameClock(self.params.frame_rate)
-        self.frames = 0
-        self.next_id = 0
+        super().reset()
         self.x = np.zeros((0, 8))
         self.P = np.zeros((0, 8, 8))
         self.ids = np.zeros(0, np.int64)
@@ -108,14 +101,13 @@ class Sort2DTracker:
             add = {
                 "x": x,
                 "P": P,
-                "ids": np.arange(self.next_id, self.next_id + n),
+                "ids": self.take_ids(n),
                 "names": det.names[born],
                 "hits": np.ones(n, np.int64),
                 "misses": np.zeros(n, np.int64),
                 "ages": np.zeros(n, np.int64),
                 "last": born,
             }
-            self.next_id += n
             for name, value in add.items():
                 setattr(self, name, np.concatenate([getattr(self, name), value]))
         needed = min(p.min_hits, self.frames)

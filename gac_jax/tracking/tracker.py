@@ -26,13 +26,11 @@ plane:
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from gac_jax.geometry import wrap_angle
 from gac_jax.tracking import association, kalman
-from gac_jax.tracking.params import TrackerParams
+from gac_jax.tracking.clock import StreamTracker
 from gac_jax.tracking.poses import (
     TrackingInputError,
     check_pose,
@@ -66,55 +64,12 @@ def on_plane(points: np.ndarray, plane: np.ndarray) -> np.ndarray:
     return out
 
 
-class FrameClock:
-    """Times of the frames of a stream: given timestamps (seconds, increasing) or
-    ``1 / frame_rate`` apart."""
-
-    def __init__(self, frame_rate: float):
-        self.frame_rate = frame_rate
-        self.time: float | None = None
-
-    def advance(self, timestamp) -> float:
-        """Seconds since the previous frame (0 for the first one).
-
-        Raises:
-          TrackingInputError: ``timestamp`` not a finite number, or not after the previous."""
-        if timestamp is None:
-            t = 0.0 if self.time is None else self.time + 1.0 / self.frame_rate
-        else:
-            try:
-                t = float(timestamp)
-            except (TypeError, ValueError):
-                raise TrackingInputError(
-                    "timestamp", f"expected seconds (a number), got {timestamp!r}"
-                ) from None
-            if not math.isfinite(t):
-                raise TrackingInputError("timestamp", f"expected a finite number, got {t}")
-            if self.time is not None and not t > self.time:
-                raise TrackingInputError(
-                    "timestamp",
-                    f"{t:g} s is not after the previous frame's {self.time:g} s "
-                    "(timestamps must increase)",
-                )
-        dt, self.time = (0.0 if self.time is None else t - self.time), t
-        return dt
-
-    def reset(self) -> None:
-        self.time = None
-
-
-class Tracker:
+class Tracker(StreamTracker):
     """3D multi-object tracker (module doc). ``params``: :class:`TrackerParams`."""
-
-    def __init__(self, params: TrackerParams | None = None):
-        self.params = params or TrackerParams()
-        self.reset()
 
     def reset(self) -> None:
         """Forget every track (a new stream); ids start again from 0."""
-        self.clock = FrameClock(self.params.frame_rate)
-        self.frames = 0
-        self.next_id = 0
+        super().reset()
         self.uses_poses: bool | None = None
         self.ids = np.zeros(0, np.int64)
         self.names = np.zeros(0, "<U16")
@@ -265,7 +220,7 @@ class Tracker:
             return
         x, P = kalman.initial_state(z, Rw, self.params.initial_speed_std)
         new = {
-            "ids": np.arange(self.next_id, self.next_id + n),
+            "ids": self.take_ids(n),
             "names": det.names,
             "x": x,
             "P": P,
@@ -281,7 +236,6 @@ class Tracker:
             "trail": np.zeros((n, self.params.trail_length, 3)),
             "trail_count": np.zeros(n, np.int64),
         }
-        self.next_id += n
         for name, value in new.items():
             setattr(self, name, np.concatenate([getattr(self, name), value]))
 
