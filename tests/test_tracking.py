@@ -198,16 +198,38 @@ def test_bad_poses_and_timestamps_are_named():
         Tracker3D(min_hitz=2)
 
 
+def test_the_config_section_and_its_defaults():
+    """A run config's ``track`` section is read (overrides too); a run config from before the
+    section gives the defaults; an unknown key is named."""
+    import ml_collections
+
+    from gac_jax.config import apply_overrides, load_config
+    from gac_jax.tracking import TrackerParams
+
+    config = load_config("configs/detect3d_default.py:tiny")
+    apply_overrides(config, ["track.min_hits=2", "track.depth_std_per_m=0.1"])
+    params = TrackerParams.from_config(config)
+    assert (params.min_hits, params.depth_std_per_m, params.max_misses) == (2, 0.1, 4)
+    old = ml_collections.ConfigDict({"model": {"backbone_depth": 18}, "data": {}})
+    assert TrackerParams.from_config(old) == TrackerParams()
+    with pytest.raises(ValueError, match="track.max_misses: expected an integer >= 1"):
+        TrackerParams.from_config({"max_misses": 0})
+
+
 def test_kitti_tracking_lines_and_dict():
-    """One line per object: frame, id, type, -1 -1, alpha, box, h w l, x y z, ry, score."""
+    """One line per object: frame, id, type, -1 -1, alpha, box, h w l, x y z, ry, score; the
+    box stands on the frame's ground plane (a pitched one: y from the plane at x, z)."""
     from gac_jax import Tracker3D
 
     tracker = Tracker3D(min_hits=1)
     loc = np.array([[1.0, 1.6, 20.0]])
+    plane = np.array([0.0, -np.cos(0.02), np.sin(0.02), 1.65])  # normal up, tilted
+    loc[0, 1] = (plane[2] * loc[0, 2] + plane[3]) / np.cos(0.02)
     corners = box3d_corners(loc, np.array([CAR]), np.array([0.3]))
     P2 = np.array([[700.0, 0, 600, 0], [0, 700, 180, 0], [0, 0, 1, 0]])
     box = np.asarray(box2d_from_corners(corners, P2)).reshape(1, 4)
-    tracks = tracker.update(objects(loc, [0.3], boxes=box.reshape(1, 4)))
+    detected = loc + [0.0, 0.3, 0.0]  # 30 cm under the road
+    tracks = tracker.update(objects(detected, [0.3], boxes=box.reshape(1, 4)), plane=plane)
     (line,) = tracks.to_kitti_tracking_lines(7)
     fields = line.split()
     assert len(fields) == 18 and fields[:5] == ["7", "0", "Car", "-1", "-1"]

@@ -52,7 +52,7 @@ def sequence_name(source) -> str:
     """``SSSS`` of a source in the KITTI tracking layout, else :data:`DEFAULT_SEQUENCE`."""
     from gac_jax.data.kitti_tracking import KittiTrackingLayout
 
-    folder = getattr(source, "images", None)
+    folder = getattr(getattr(source, "source", source), "images", None)  # a paced one's too
     if folder:
         located = KittiTrackingLayout.locate(Path(folder[0]).parent)
         if located is not None:
