@@ -32,6 +32,8 @@ class TrackerParams:
       initial_speed_std: velocity uncertainty of a new track (m/s).
       gate_chi2: association gate on the squared Mahalanobis distance of the centres
         (3 degrees of freedom; 16.27 keeps 99.9 % of true matches).
+      iou_weight: first stage: weight of ``1 - IoU`` (detection's 2D box with the track's
+        last one) beside ``d2 / gate_chi2`` in the assignment cost.
       min_iou_2d: second stage: a track and a detection left over by the 3D stage are
         matched on their 2D boxes when the IoU is at least this.
       size_window: the box size is the running mean of up to this many detections.
@@ -51,6 +53,7 @@ class TrackerParams:
     yaw_std: float = 0.15
     initial_speed_std: float = 10.0
     gate_chi2: float = 16.27
+    iou_weight: float = 1.0
     min_iou_2d: float = 0.3
     size_window: int = 20
     trail_length: int = 20
@@ -65,7 +68,7 @@ class TrackerParams:
             value = getattr(self, name)
             if not isinstance(value, int | float) or not value > 0:
                 raise ValueError(f"track.{name}: expected a number > 0, got {value!r}")
-        for name in ("depth_std_per_m", "lateral_std_per_m", "min_score"):
+        for name in ("depth_std_per_m", "lateral_std_per_m", "min_score", "iou_weight"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"track.{name}: expected a number >= 0, got {getattr(self, name)}")
         if not 0 < self.min_iou_2d <= 1:

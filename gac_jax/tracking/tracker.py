@@ -9,10 +9,13 @@ plane:
    ``1 / frame_rate``). They live in the world frame when poses are given, so a parked car
    stays put while the ego drives; in the camera frame otherwise (velocities then relative).
 2. Stage 1: detected bottom centres against predicted ones, squared Mahalanobis distance
-   under the innovation covariance (the track's uncertainty plus a monocular detection's,
-   long along the viewing ray and growing with distance), gated at ``gate_chi2``, same class
-   only, Hungarian. Stage 2: tracks and detections left over, on the IoU of the detection's
-   2D box with the track's last one (``>= min_iou_2d``), Hungarian.
+   ``d2`` under the innovation covariance (the track's uncertainty plus a monocular
+   detection's, long along the viewing ray and growing with distance), gated at
+   ``gate_chi2``, same class only; Hungarian on ``d2 / gate_chi2 + iou_weight (1 - IoU)``,
+   the IoU of the detection's 2D box with the track's last one (of two detections in the
+   gate, a track keeps the one its image box continues: a detector's duplicates at two
+   depths do not swap tracks). Stage 2: tracks and detections left over, on that 2D IoU
+   alone (``>= min_iou_2d``), Hungarian.
 3. Matched tracks take the detection (Kalman update of the position; the heading is turned
    by 180 degrees first when it points more than 90 degrees away from the track's, so a
    detector's front/back confusion never flips a track; with poses, a track moving surely
@@ -164,11 +167,13 @@ class Tracker(StreamTracker):
         R_track = association.measurement_covariance(predicted_cam, p)
         S = self.P[:, :3, :3] + pose[:, :3] @ R_track @ pose[:, :3].T
         d2 = association.mahalanobis_costs(self.x[:, :3], S, z)
-        rows, cols = association.assign(d2, same_class & (d2 <= p.gate_chi2))
+        iou = association.box_iou_matrix(self.boxes, det.boxes_2d)
+        cost = d2 / p.gate_chi2 + p.iou_weight * (1.0 - iou)
+        rows, cols = association.assign(cost, same_class & (d2 <= p.gate_chi2))
         free_t = np.flatnonzero(~np.isin(np.arange(self.num_tracks), rows))
         free_d = np.flatnonzero(~np.isin(np.arange(len(det)), cols))
         if len(free_t) and len(free_d):
-            iou = association.box_iou_matrix(self.boxes[free_t], det.boxes_2d[free_d])
+            iou = iou[np.ix_(free_t, free_d)]
             ok = same_class[np.ix_(free_t, free_d)] & (iou >= p.min_iou_2d)
             r2, c2 = association.assign(1.0 - iou, ok)
             rows = np.concatenate([rows, free_t[r2]])
