@@ -47,8 +47,8 @@ def assign(cost: np.ndarray, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarra
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     rows_in = np.flatnonzero(allowed.any(axis=1))
     cols_in = np.flatnonzero(allowed.any(axis=0))
-    sub_allowed = allowed[np.ix_(rows_in, cols_in)]
-    sub = cost[np.ix_(rows_in, cols_in)]
+    sub_allowed = allowed[rows_in][:, cols_in]
+    sub = cost[rows_in][:, cols_in]
     big = 1.0 + 2.0 * np.abs(np.where(sub_allowed, sub, 0.0)).sum()  # worse than any allowed set
     rows, cols = linear_sum_assignment(np.where(sub_allowed, sub, big))
     keep = sub_allowed[rows, cols]

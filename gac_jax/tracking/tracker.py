@@ -173,8 +173,8 @@ class Tracker(StreamTracker):
         free_t = np.flatnonzero(~np.isin(np.arange(self.num_tracks), rows))
         free_d = np.flatnonzero(~np.isin(np.arange(len(det)), cols))
         if len(free_t) and len(free_d):
-            iou = iou[np.ix_(free_t, free_d)]
-            ok = same_class[np.ix_(free_t, free_d)] & (iou >= p.min_iou_2d)
+            iou = iou[free_t][:, free_d]
+            ok = same_class[free_t][:, free_d] & (iou >= p.min_iou_2d)
             r2, c2 = association.assign(1.0 - iou, ok)
             rows = np.concatenate([rows, free_t[r2]])
             cols = np.concatenate([cols, free_d[c2]])

@@ -64,7 +64,7 @@ class DetectionArrays:
                 raise ValueError(f"{name}: expected shape {shape}, got {arr.shape}")
             if name != "scores" and not np.all(np.isfinite(arr)):
                 raise ValueError(f"{name}: non-finite value")
-        scores = np.nan_to_num(arrays[0], nan=1.0)  # ground truth as detections: score 1
+        scores = np.where(np.isnan(arrays[0]), 1.0, arrays[0])  # ground truth: score 1
         return cls(names, scores, *arrays[1:])
 
     def __len__(self) -> int:
