@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from gac_jax.api.tracker import Tracker3D
+from gac_jax.data.files import KittiFormatError
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.evaluation.track_pictures import track_picture
 from gac_jax.streams.outputs import JsonlResults
@@ -49,8 +50,8 @@ class TrackingStage:
         pose = None
         if self.poses is not None:
             if frame.index >= len(self.poses):
-                raise ValueError(
-                    f"frame {frame.index}: the poses cover frames 0 to {len(self.poses) - 1}"
+                raise KittiFormatError(
+                    "poses", f"frame {frame.index} has none (they cover 0 to {len(self.poses) - 1})"
                 )
             pose = self.poses[frame.index]
         timestamp = frame.t_read if self.realtime else frame.index / self.fps
