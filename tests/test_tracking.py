@@ -180,6 +180,8 @@ def test_headings_never_flip(with_poses):
             for track_id, e in zip(tracks.ids.tolist(), err, strict=True):
                 assert reversed_.setdefault(track_id, e > np.pi / 2) == (e > np.pi / 2), k
     assert with_poses or reversed_[1]  # the first detection decides without a motion cue
+    car = int(np.flatnonzero(tracks.ids == 0)[0])  # 30 frames: the trail keeps the last 20
+    assert len(tracks.trails[car]) == 20 and np.all(np.diff(tracks.trails[car][:, 2]) > 0)
 
 
 def test_bad_poses_and_timestamps_are_named():
@@ -244,7 +246,8 @@ def test_kitti_tracking_lines_and_dict():
 def test_a_live_stream_tracks_with_the_times_frames_were_read(realtime):
     """The stream's tracking stage: live, a frame's time is when it was read (a camera that
     delivered frames 0.1-0.5 s apart: the car's 8 m/s is measured); from a file, ``index /
-    fps`` (the same frames then look 0.1 s apart: the speed comes out wrong)."""
+    fps`` (the same frames then look 0.1 s apart: the speed comes out wrong). The trail holds
+    the track's positions in order."""
     from gac_jax import Tracker3D
     from gac_jax.streams.sources import Frame
     from gac_jax.streams.tracking import TrackingStage
@@ -256,6 +259,9 @@ def test_a_live_stream_tracks_with_the_times_frames_were_read(realtime):
     for i, t in enumerate(times):
         frame = Frame(i, f"{i:06d}", image, P2, None, t_read=1000.0 + t)
         tracks = stage.update(frame, objects([[2.0, 1.6, 10.0 + 8.0 * t]], [-np.pi / 2]))
+    trail = tracks.trails[0]  # the track's positions, oldest first, ending where it is now
+    assert len(trail) == len(times) and np.all(np.diff(trail[:, 2]) > 0)
+    np.testing.assert_allclose(trail[-1], tracks.locations[0])
     speed = float(tracks.speeds[0])
     if realtime:
         assert speed == pytest.approx(8.0, abs=0.5)

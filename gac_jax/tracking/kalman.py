@@ -35,10 +35,14 @@ def predict(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The filters ``dt`` seconds later: ``x`` (T, 2 d), ``P`` (T, 2 d, 2 d) -> same shapes."""
     dim = x.shape[-1] // 2
-    F = transition(dt, dim)
-    x_new = x @ F.T
-    P_new = F @ P @ F.T + process_noise(dt, accel_std, dim)
-    return x_new, P_new
+    return predict_with(x, P, transition(dt, dim), process_noise(dt, accel_std, dim))
+
+
+def predict_with(
+    x: np.ndarray, P: np.ndarray, F: np.ndarray, Q: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`predict` with the step's ``F`` and ``Q`` (2 d, 2 d) given."""
+    return x @ F.T, F @ P @ F.T + Q
 
 
 def innovation(

@@ -87,9 +87,11 @@ class Tracker(StreamTracker):
         self.hits = np.zeros(0, np.int64)
         self.misses = np.zeros(0, np.int64)
         self.ages = np.zeros(0, np.int64)
-        # the last trail_length positions of each track (oldest first), how many are set
+        # ring buffers of each track's last trail_length positions; trail_count: positions
+        # written so far (the next goes to slot trail_count % trail_length)
         self.trail = np.zeros((0, self.params.trail_length, 3))
         self.trail_count = np.zeros(0, np.int64)
+        self._steps: dict = {}  # (dt, accel) -> (F, Q) of the last time steps
 
     @property
     def num_tracks(self) -> int:
@@ -135,8 +137,7 @@ class Tracker(StreamTracker):
         det_yaw = yaw_to_world(det.rotation_y, pose)
 
         if dt > 0 and self.num_tracks:
-            accel = p.accel_std * np.array([1.0, VERTICAL_ACCEL, 1.0])
-            self.x, self.P = kalman.predict(self.x, self.P, dt, accel)
+            self.x, self.P = self._predict(dt)
             self.yaw_var = self.yaw_var + (p.yaw_rate_std * dt) ** 2
         rows, cols = self._associate(det, z, pose)
 
@@ -151,11 +152,21 @@ class Tracker(StreamTracker):
         born = np.ones(len(det), bool)
         born[cols] = False
         self._birth(det.select(born), z[born], Rw[born], det_yaw[born])
-        seen = self.misses == 0
-        self.trail[seen] = np.roll(self.trail[seen], -1, axis=1)
-        self.trail[seen, -1] = self.x[seen, :3]
-        self.trail_count[seen] = np.minimum(self.trail_count[seen] + 1, self.params.trail_length)
+        seen = np.flatnonzero(self.misses == 0)
+        self.trail[seen, self.trail_count[seen] % p.trail_length] = self.x[seen, :3]
+        self.trail_count[seen] += 1
         return self._report(pose, plane)
+
+    def _predict(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """The filters ``dt`` seconds on (:func:`kalman.predict`; ``F`` and ``Q`` kept for
+        the stream's usual steps)."""
+        if dt not in self._steps:
+            if len(self._steps) > 16:
+                self._steps.clear()
+            accel = self.params.accel_std * np.array([1.0, VERTICAL_ACCEL, 1.0])
+            self._steps[dt] = (kalman.transition(dt, 3), kalman.process_noise(dt, accel, 3))
+        F, Q = self._steps[dt]
+        return kalman.predict_with(self.x, self.P, F, Q)
 
     def _associate(self, det: DetectionArrays, z: np.ndarray, pose: np.ndarray):
         """Matched ``(track rows, detection columns)``: stage 1 (3D), then stage 2 (2D)."""
@@ -256,11 +267,14 @@ class Tracker(StreamTracker):
             locations = on_plane(locations, plane)
         velocities = self.x[shown, 3:] @ R  # R^T v
         cov = R.T @ self.P[shown, 3:, 3:] @ R
-        trail = to_camera(self.trail[shown], pose)  # (S, L, 3)
+        length = self.params.trail_length
+        count = self.trail_count[shown]
+        oldest_first = (count[:, None] + np.arange(length)) % length  # (S, L) slots
+        trail = to_camera(self.trail[shown[:, None], oldest_first], pose)  # (S, L, 3)
         if plane is not None:
             trail = on_plane(trail.reshape(-1, 3), plane).reshape(trail.shape)
-        length = self.params.trail_length
-        trails = [trail[i, length - c :] for i, c in enumerate(self.trail_count[shown].tolist())]
+        kept = np.minimum(count, length).tolist()
+        trails = [trail[i, length - c :] for i, c in enumerate(kept)]
         return TrackedObjects(
             ids=self.ids[shown],
             names=self.names[shown],
