@@ -5,6 +5,7 @@ detector, written as an annotated video and per-frame results while it runs.
         --clip [N]) [--calib FILE] [--plane FILE] [--out DIR] [--out-video FILE] [--no-images]
         [--jsonl] [--realtime] [--fps F] [--max-frames N] [--report-every S]
         [--runtime R] [--precision P] [--batch-size B] [--threads T] [--score-threshold S]
+        [--track [--poses FILE]]
 
 A video or camera needs ``--calib FILE`` (KITTI calibration with a ``P2`` line, checked
 against the frame size); a ``--sequence`` in the KITTI tracking layout
@@ -15,7 +16,7 @@ level camera is used. Writes ``OUT/annotated.mp4`` (camera view with 3D boxes | 
 view, at the input's fps) and ``OUT/data/<frame>.txt`` (or ``OUT/detections.jsonl`` with
 ``--jsonl``) as frames finish; prints frames/s and latency every few seconds and at the end.
 Ctrl-C stops reading and finishes the frames in flight (twice: drops them); the video stays
-playable.
+playable. ``--track``: objects over frames (:mod:`gac_jax.cli.predict_track`).
 """
 
 from __future__ import annotations
