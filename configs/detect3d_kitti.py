@@ -23,6 +23,7 @@ from __future__ import annotations
 import ml_collections
 
 from gac_jax.builders.datasets import synthetic_config
+from gac_jax.tracking.params import track_config
 
 
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
@@ -130,6 +131,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     # None = every anchor (exact reference semantics, all 46 080 candidates leave the device).
     c.eval.top_k = 4096
     c.eval.num_pictures = 4  # val frames drawn at each evaluation
+
+    # Objects over time (python -m gac_jax.cli.predict ... --track, gac_jax.Tracker3D): the
+    # multi-object tracker's parameters, gac_jax.tracking.params.TrackerParams (docs there)
+    c.track = track_config()
 
     c.log = ml_collections.ConfigDict()
     # TensorBoard event files in WORKDIR/tensorboard beside metrics.jsonl (scalars of every

@@ -3,7 +3,7 @@
 The inference API (:mod:`gac_jax.api`) is importable from here, loaded on first use so that
 ``import gac_jax`` stays cheap::
 
-    from gac_jax import Detector3D, DepthPredictor, Detections, InputError
+    from gac_jax import Detector3D, DepthPredictor, Detections, InputError, Tracker3D
 """
 
 from __future__ import annotations
@@ -11,12 +11,36 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-_API = ("Detector3D", "DepthPredictor", "Detections", "DetectedObject", "InputError")
+_API = (
+    "Detector3D",
+    "DepthPredictor",
+    "Detections",
+    "DetectedObject",
+    "InputError",
+    "Tracker3D",
+    "TrackedObjects",
+)
 
-__all__ = ["DepthPredictor", "DetectedObject", "Detections", "Detector3D", "InputError"]
+__all__ = [
+    "DepthPredictor",
+    "DetectedObject",
+    "Detections",
+    "Detector3D",
+    "InputError",
+    "TrackedObjects",
+    "Tracker3D",
+]
 
 if TYPE_CHECKING:
-    from gac_jax.api import DepthPredictor, DetectedObject, Detections, Detector3D, InputError
+    from gac_jax.api import (
+        DepthPredictor,
+        DetectedObject,
+        Detections,
+        Detector3D,
+        InputError,
+        TrackedObjects,
+        Tracker3D,
+    )
 
 
 def __getattr__(name: str) -> Any:

@@ -7,6 +7,7 @@ the layers below it:
     data        data/, config
     paper       detection/, depth/, models/
     services    evaluation/ (scoring), training/ (run plumbing)
+    tracking    tracking/ (objects over time: the multi-object trackers, numpy/scipy)
     weights     weights/ (PyTorch import, pretrained backbones)
     builders    builders/ (config -> model, anchors, priors, transforms, evaluators)
     runs        trainers/, trained/ (a trained model from a run folder or converted weights)
@@ -30,6 +31,7 @@ LAYERS = (
     ("data", ("gac_jax.data", "gac_jax.config")),
     ("paper", ("gac_jax.detection", "gac_jax.depth", "gac_jax.models")),
     ("services", ("gac_jax.evaluation", "gac_jax.training")),
+    ("tracking", ("gac_jax.tracking",)),
     ("weights", ("gac_jax.weights",)),
     ("builders", ("gac_jax.builders",)),
     ("runs", ("gac_jax.trainers", "gac_jax.trained")),

@@ -5,6 +5,7 @@ detector, written as an annotated video and per-frame results while it runs.
         --clip [N]) [--calib FILE] [--plane FILE] [--out DIR] [--out-video FILE] [--no-images]
         [--jsonl] [--realtime] [--fps F] [--max-frames N] [--report-every S]
         [--runtime R] [--precision P] [--batch-size B] [--threads T] [--score-threshold S]
+        [--track [--poses FILE]]
 
 A video or camera needs ``--calib FILE`` (KITTI calibration with a ``P2`` line, checked
 against the frame size); a ``--sequence`` in the KITTI tracking layout
@@ -19,6 +20,7 @@ the video stays playable; exit 130 / 143 / 129 (:mod:`gac_jax.streams.stop_signa
 outputs are checked before the model is loaded (:mod:`gac_jax.streams.output_plan`: a folder
 with an earlier run's results needs ``--overwrite``); a failed write ends the run with one
 line and exit 1, keeping the frames written so far (:mod:`gac_jax.streams.outputs`).
+``--track``: objects over frames (:mod:`gac_jax.cli.predict_track`).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import os
 import sys
 from pathlib import Path
 
+from gac_jax.cli import predict_track
 from gac_jax.data.files import KittiFormatError
 
 STREAM_SOURCES = ("video", "camera", "sequence", "clip")
@@ -75,6 +78,7 @@ def add_stream_arguments(parser: argparse.ArgumentParser) -> None:
         help="replace the results of an earlier run in the output folder (deleted first; an "
         "earlier video is replaced when the new one is complete)",
     )
+    predict_track.add_tracking_arguments(group)
 
 
 def stream_kind(args: argparse.Namespace) -> str | None:
@@ -85,6 +89,7 @@ def stream_kind(args: argparse.Namespace) -> str | None:
 
 def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     given = [f"--{k}" for k in STREAM_SOURCES if getattr(args, k) is not None]
+    predict_track.check_tracking_arguments(parser, args)
     if args.input is not None and args.camera is not None:
         parser.error(
             "--camera INDEX opens a live camera; the P2/P3 choice of image input is "
@@ -223,7 +228,9 @@ def plan_outputs(args: argparse.Namespace, source=None, clear: bool = True):
     if not args.no_images:
         video = args.out_video or out / output_plan.VIDEO_NAME
     inputs = [p for p in (args.video, args.calib, args.plane) if p is not None]
-    plan = output_plan.plan_outputs(out, video, args.jsonl, inputs, args.overwrite, clear)
+    plan = output_plan.plan_outputs(
+        out, video, args.jsonl, inputs, args.overwrite, clear, track=bool(args.track)
+    )
     if source is not None:
         h, w = source.size
         output_plan.check_free_space(plan, h * (w + h), source.fps)
@@ -316,6 +323,7 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
     video = results = None
     try:
         plan = plan_outputs(args, source)
+        poses = predict_track.stream_poses(args, source) if args.track else None
         signals.check()
         t_load = time.perf_counter()
         detector = load_detector(args)
@@ -340,7 +348,13 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
             source = sources.PacedSource(source, source.fps or DEFAULT_FPS)
         if plan.video is not None:
             video = outputs.AnnotatedVideo(plan.video, source.fps)
-        if plan.jsonl:
+        track = None
+        if args.track:
+            fps = source.fps or DEFAULT_FPS
+            results, track = predict_track.tracking_outputs(
+                args, source, plan, detector, poses, fps
+            )
+        elif plan.jsonl:
             results = outputs.JsonlResults(plan.results)
         else:
             results = outputs.KittiResults(plan.results)
@@ -354,6 +368,7 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
             max_frames=args.max_frames,
             report_every=args.report_every,
             log=lambda line: print(line, flush=True),
+            track=track,
         )
         signals.check()
         signals.pipeline = pipeline

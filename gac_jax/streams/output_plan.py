@@ -27,6 +27,8 @@ from gac_jax.streams.outputs import check_video_path, incomplete_path, partial_p
 VIDEO_NAME = "annotated.mp4"
 JSONL_NAME = "detections.jsonl"
 RESULTS_DIR = "data"
+TRACKS_JSONL_NAME = "tracks.jsonl"  # --track: the tracks of every frame as JSON lines
+TRACKING_DIR = "tracking"  # --track: KITTI tracking result files SSSS.txt
 MIN_VIDEO_SECONDS = 3.0  # free space needed before starting: this much video
 # bytes of a JPEG frame (quality 90) per pixel of the annotated picture (camera view + bird's-eye
 # view, about twice the frame): measured 0.2 to 0.3 on KITTI frames; with room to spare
@@ -37,7 +39,8 @@ RESULTS_RESERVE = 1 << 20  # bytes kept free for a few seconds of result files
 @dataclasses.dataclass(frozen=True)
 class OutputPlan:
     """Absolute output paths: ``folder``; ``video`` (None: no video); ``results`` (the
-    ``data`` folder or the JSON lines file) and ``jsonl``."""
+    ``data`` folder or the JSON lines file; with tracking the ``tracking`` folder or
+    ``tracks.jsonl``) and ``jsonl``."""
 
     folder: Path
     video: Path | None
@@ -78,10 +81,10 @@ def earlier_results(plan: OutputPlan) -> list[Path]:
     """The files of an earlier run where ``plan`` would write: result files, the JSON lines,
     the video, and what a failed or killed run left (``*.incomplete*``, hidden partials)."""
     found: list[Path] = []
-    data = plan.folder / RESULTS_DIR
-    if data.is_dir():
-        found += sorted(data.glob("*.txt"))
-    for path in (plan.folder / JSONL_NAME, plan.video):
+    for name in (RESULTS_DIR, TRACKING_DIR):
+        if (plan.folder / name).is_dir():
+            found += sorted((plan.folder / name).glob("*.txt"))
+    for path in (plan.folder / JSONL_NAME, plan.folder / TRACKS_JSONL_NAME, plan.video):
         if path is None:
             continue
         found += [p for p in (path, incomplete_path(path), partial_path(path)) if p.is_file()]
@@ -95,11 +98,12 @@ def plan_outputs(
     inputs: list[str | os.PathLike],
     overwrite: bool,
     clear: bool = True,
+    track: bool = False,
 ) -> OutputPlan:
     """Resolves and checks the outputs (module doc). ``clear``: creates the folders and, with
     ``overwrite``, deletes the earlier result files (without ``clear`` nothing is changed).
     ``video``: the video file (None: none); ``inputs``: files the stream reads (none of them
-    may be an output)."""
+    may be an output); ``track``: the results are tracks (``tracking/`` or ``tracks.jsonl``)."""
     folder = Path(folder).absolute()
     if folder.exists() and not folder.is_dir():
         raise KittiFormatError(folder, "is a file; --out needs a folder (or a new name)")
@@ -108,7 +112,12 @@ def plan_outputs(
     plan = OutputPlan(
         folder=folder,
         video=None if video is None else Path(check_video_path(video)).absolute(),
-        results=folder / (JSONL_NAME if jsonl else RESULTS_DIR),
+        results=folder
+        / (
+            (TRACKS_JSONL_NAME if jsonl else TRACKING_DIR)
+            if track
+            else (JSONL_NAME if jsonl else RESULTS_DIR)
+        ),
         jsonl=jsonl,
     )
     if plan.video is not None:
@@ -127,7 +136,7 @@ def plan_outputs(
         _probe(plan.video.parent, "folder of --out-video", create=clear)
     earlier = earlier_results(plan)
     if earlier and not overwrite:
-        results = [p for p in earlier if p.parent.name == RESULTS_DIR]
+        results = [p for p in earlier if p.parent.name in (RESULTS_DIR, TRACKING_DIR)]
         others = sorted({p.name for p in earlier} - {p.name for p in results})
         held = ([f"{len(results)} result files"] if results else []) + others
         raise KittiFormatError(

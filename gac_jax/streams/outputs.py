@@ -214,7 +214,12 @@ class JsonlResults:
 
     def write(self, frame_id: str, index: int, objects: KittiObjects, record: dict) -> None:
         line = json.dumps({"frame": frame_id, "index": index, **record}, default=_plain)
-        data = memoryview((line + "\n").encode())
+        self.append_frame(line + "\n")
+
+    def append_frame(self, text: str) -> None:
+        """Appends one frame's ``text`` (whole lines) whole, or not at all (the file is cut
+        back to the previous frame's end and the error names the file)."""
+        data = memoryview(text.encode())
         done = 0
         try:
             while done < len(data):

@@ -119,6 +119,8 @@ class StreamPipeline:
       max_frames: stop reading after this many frames (None: at the source's end).
       report_every: seconds between progress lines (``log``); 0: none.
       log: where progress and notes go (one line each).
+      track: a tracking stage (:class:`gac_jax.streams.tracking.TrackingStage`) or None: each
+        frame's detections become tracks (in frame order) before drawing and writing.
     """
 
     def __init__(
@@ -135,12 +137,14 @@ class StreamPipeline:
         report_every: float = 5.0,
         log: Callable[[str], None] = print,
         draw: Callable = detection_picture,
+        track=None,
     ):
         self.source, self.detector = source, detector
         self.video, self.results = video, results
         self.realtime, self.batch_size = realtime, batch_size
         self.max_frames = max_frames
         self.report_every, self.log, self.draw = report_every, log, draw
+        self.track = track
         self.rates = StreamRates()
         self._read_q = LatestSlot() if realtime else queue.Queue(queue_size)
         # live: the network takes the newest prepared frame too (an older one is dropped)
@@ -305,9 +309,13 @@ class StreamPipeline:
         detections = self.detector.finish(raw, prepared)
         out = []
         for frame, det in zip(frames, detections, strict=True):
+            if self.track is not None:  # tracking hook: detections -> tracks
+                det = self.track.update(frame, det)
             objects = det.to_kitti_objects()
             picture = None
-            if self.video is not None:
+            if self.video is not None and self.track is not None:
+                picture = self.track.draw(frame, det)
+            elif self.video is not None:
                 picture = self.draw(frame.image, frame.P2, objects)
             out.append((det, objects, picture))
         return frames, out
