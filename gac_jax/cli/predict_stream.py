@@ -5,6 +5,7 @@ detector, written as an annotated video and per-frame results while it runs.
         --clip [N]) [--calib FILE] [--plane FILE] [--out DIR] [--out-video FILE] [--no-images]
         [--jsonl] [--realtime] [--fps F] [--max-frames N] [--report-every S]
         [--runtime R] [--precision P] [--batch-size B] [--threads T] [--score-threshold S]
+        [--no-video] [--video-scale S] [--network-requests N]
 
 A video or camera needs ``--calib FILE`` (KITTI calibration with a ``P2`` line, checked
 against the frame size); a ``--sequence`` in the KITTI tracking layout
@@ -16,11 +17,18 @@ view, at the input's fps) and ``OUT/data/<frame>.txt`` (or ``OUT/detections.json
 ``--jsonl``) as frames finish; prints frames/s and latency every few seconds and at the end.
 Ctrl-C stops reading and finishes the frames in flight (twice: drops them); the video stays
 playable.
+
+Throughput: ``--no-video`` writes the results only; ``--video-scale 0.5`` draws and encodes a
+half-size annotated frame; the container sets the encoder (``.mp4``: MPEG-4 part 2, ``.avi`` /
+``.mkv``: Motion JPEG, cheaper to encode and larger); ``--network-requests 2`` keeps two
+network calls in flight (OpenVINO: two streams sharing the ``--threads``). The stream sizes
+its threads as one budget (:mod:`gac_jax.streams.thread_budget`) and prints it.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import signal
 import sys
@@ -62,6 +70,30 @@ def add_stream_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--fps", type=float, help="frame rate of a sequence (default 10)")
     group.add_argument("--max-frames", type=int, help="stop after this many frames")
     group.add_argument("--report-every", type=float, default=5.0, help="seconds per line")
+    add_throughput_arguments(group)
+
+
+def add_throughput_arguments(group) -> None:
+    """What a stream spends its cores on: the video (none, or smaller) and the network's
+    calls in flight."""
+    group.add_argument(
+        "--no-video", dest="no_images", action="store_true", help="results only (no video)"
+    )
+    group.add_argument(
+        "--video-scale",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="annotated video at S times the input's size (0 < S <= 1; less to draw and encode)",
+    )
+    group.add_argument(
+        "--network-requests",
+        type=int,
+        default=1,
+        metavar="N",
+        help="network calls in flight (openvino/onnxruntime; 2: the next frame's network runs "
+        "while this one is finished)",
+    )
 
 
 def stream_kind(args: argparse.Namespace) -> str | None:
@@ -90,6 +122,14 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
         used = [
             f"--{k.replace('_', '-')}" for k in stream_only if getattr(args, k) not in (None, False)
         ]
+        used += [
+            f"--{k}"
+            for k, v in (
+                ("video-scale", args.video_scale != 1.0),
+                ("network-requests", args.network_requests != 1),
+            )
+            if v
+        ]
         if used:
             parser.error(f"{used[0]} applies to --video/--camera/--sequence/--clip only")
         return
@@ -103,6 +143,12 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
         parser.error("--max-frames must be >= 1")
     if args.clip is not None and args.clip < 0:
         parser.error("--clip N must be >= 0")
+    if not 0 < args.video_scale <= 1:
+        parser.error(f"--video-scale must be in (0, 1], got {args.video_scale:g}")
+    if args.network_requests < 1:
+        parser.error(f"--network-requests must be >= 1, got {args.network_requests}")
+    if args.network_requests > 1 and args.runtime == "jax":
+        parser.error("--network-requests applies to --runtime openvino/onnxruntime")
 
 
 def clip_sequence(index: int) -> Path:
@@ -176,6 +222,7 @@ def load_detector(args: argparse.Namespace):
         "batch_size": args.batch_size,
         "export_dir": args.export,
         "int8": getattr(args, "int8", None),
+        "requests": getattr(args, "network_requests", 1),
     }
     if args.checkpoint is not None:
         config = args.config or load_run_config(args.workdir)
@@ -230,8 +277,22 @@ def summary_lines(report, written_to: list[str], detector, threads: int) -> list
     return lines
 
 
+def stream_thread_budget(args: argparse.Namespace):
+    """The stream's :class:`~gac_jax.streams.thread_budget.ThreadBudget` (``--threads``,
+    ``--network-requests``), its OpenCV/BLAS part applied; ``args.threads`` set to the
+    network's threads."""
+    from gac_jax.streams.thread_budget import apply_host_threads, plan_thread_budget
+
+    budget = plan_thread_budget(args.threads, args.network_requests)
+    apply_host_threads(budget)
+    if args.runtime != "jax":
+        args.threads = budget.network_threads
+    return budget
+
+
 def run_stream(args: argparse.Namespace, threads: int) -> int:
     """Runs the stream command; returns the exit code (errors raise, see ``predict.main``)."""
+    from gac_jax.evaluation.detection_pictures import detection_picture
     from gac_jax.streams import outputs, sources
     from gac_jax.streams.pipeline import StreamPipeline
 
@@ -241,6 +302,7 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
     if args.out_video is not None:
         outputs.check_video_path(args.out_video)
     source = open_source(args)
+    budget = stream_thread_budget(args)
     try:
         detector = load_detector(args)
         out = output_folder(args, source)
@@ -249,6 +311,7 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
         count = f", {source.expected_frames} frames" if source.expected_frames else ""
         print(f"{detector.weights}: {source.name} ({w}x{h}, {fps}{count}) -> {out}", flush=True)
         print(detector.precision_line(), flush=True)
+        print(budget.describe(detector.runtime), flush=True)
         print(f"warm-up (compile): {detector.warmup():.1f} s", flush=True)
         if args.realtime and not source.live:  # a recording replayed as a live camera
             source = sources.PacedSource(source, source.fps or DEFAULT_FPS)
@@ -276,6 +339,8 @@ def run_stream(args: argparse.Namespace, threads: int) -> int:
             max_frames=args.max_frames,
             report_every=args.report_every,
             log=lambda line: print(line, flush=True),
+            draw=functools.partial(detection_picture, scale=args.video_scale),
+            network_requests=budget.requests,
         )
         handler = _CtrlC(pipeline)
         previous = signal.signal(signal.SIGINT, handler)

@@ -115,6 +115,9 @@ class StreamPipeline:
       max_frames: stop reading after this many frames (None: at the source's end).
       report_every: seconds between progress lines (``log``); 0: none.
       log: where progress and notes go (one line each).
+      network_requests: network calls in flight at once (> 1:
+        :class:`~gac_jax.streams.async_network.AsyncNetworkStage`; the detector needs
+        ``infer_async``).
     """
 
     def __init__(
@@ -131,6 +134,7 @@ class StreamPipeline:
         report_every: float = 5.0,
         log: Callable[[str], None] = print,
         draw: Callable = detection_picture,
+        network_requests: int = 1,
     ):
         self.source, self.detector = source, detector
         self.video, self.results = video, results
@@ -138,6 +142,7 @@ class StreamPipeline:
         self.max_frames = max_frames
         self.report_every, self.log, self.draw = report_every, log, draw
         self.rates = StreamRates()
+        self.network_requests = network_requests
         self._read_q = LatestSlot() if realtime else queue.Queue(queue_size)
         # live: the network takes the newest prepared frame too (an older one is dropped)
         self._prepared_q = LatestSlot() if realtime else queue.Queue(max(queue_size, batch_size))
@@ -343,6 +348,13 @@ class StreamPipeline:
             line += f", {self.dropped_live} dropped"
         return line
 
+    def _network_stage(self) -> Callable[[], None]:
+        if self.network_requests == 1:
+            return self._network
+        from gac_jax.streams.async_network import AsyncNetworkStage
+
+        return AsyncNetworkStage(self, self.network_requests).run
+
     def run(self) -> StreamReport:
         """Runs the stream to its end (or :meth:`stop` / :meth:`abort`); returns the report.
         The outputs are not closed here."""
@@ -353,7 +365,7 @@ class StreamPipeline:
                 self._stage,
                 (PREPARE, self._read_q.get, self._prepared_q.put, self._prepare),
             ),
-            ("network", self._network, ()),
+            ("network", self._network_stage(), ()),
             ("finish", self._stage, (FINISH, self._raw_q.get, self._drawn_q.put, self._finish)),
             ("write", self._write, ()),
         ]
