@@ -19,39 +19,39 @@ import collections
 import queue
 import time
 
-from gac_jax.streams.pipeline import END, NETWORK
-
 
 class AsyncNetworkStage:
-    """Runs the network stage of ``pipeline`` (its queues, drop and failure rules) with up to
-    ``requests`` calls of ``pipeline.detector.infer_async`` in flight.
+    """Runs the network stage of ``pipeline`` (its queues, drop and failure rules; ``end``
+    its queues' end marker, ``rank`` the stage's) with up to ``requests`` calls of
+    ``pipeline.detector.infer_async`` in flight.
 
     Wall time (``busy_s``) counts the time this thread spends starting calls and waiting for
     results; CPU time (``cpu_s``) this thread's own (starting, decoding), as the synchronous
     stage's."""
 
-    def __init__(self, pipeline, requests: int):
+    def __init__(self, pipeline, requests: int, end: object, rank: int):
         if requests < 1:
             raise ValueError(f"requests must be >= 1, got {requests}")
         self.pipeline, self.requests = pipeline, requests
+        self.end, self.rank = end, rank  # the pipeline's end marker and the stage's rank
         self._in_flight: collections.deque = collections.deque()  # (frames, prepared, pending)
 
     def _take(self, block: bool):
-        """A batch of items (up to ``batch_size``), END, or None when none waits."""
+        """A batch of items (up to ``batch_size``), the end marker, or None when none waits."""
         p = self.pipeline
         try:
             first = p._prepared_q.get(block=block)
         except queue.Empty:
             return None
-        if first is END:
-            return END
+        if first is self.end:
+            return self.end
         batch = [first]
         while len(batch) < p.batch_size:
             try:
                 item = p._prepared_q.get(block=not p.realtime)
             except queue.Empty:
                 break
-            if item is END:
+            if item is self.end:
                 self._ended = True
                 break
             batch.append(item)
@@ -60,7 +60,7 @@ class AsyncNetworkStage:
     def _start(self, batch) -> None:
         p = self.pipeline
         frames = [f for frames, _ in batch for f in frames]
-        if p._dropping(NETWORK):
+        if p._dropping(self.rank):
             p._drop(frames)
             return
         prepared = [x for _, x in batch]
@@ -69,9 +69,9 @@ class AsyncNetworkStage:
             pending = p.detector.infer_async(prepared)
         except Exception as e:
             p._drop(frames)
-            p._fail(e, NETWORK)
+            p._fail(e, self.rank)
             return
-        p._busy(NETWORK, t0)
+        p._busy(self.rank, t0)
         self._in_flight.append((frames, prepared, pending))
 
     def _hand_on_oldest(self) -> None:
@@ -82,10 +82,10 @@ class AsyncNetworkStage:
             raw = pending.result()
         except Exception as e:
             p._drop(frames)
-            p._fail(e, NETWORK)
+            p._fail(e, self.rank)
             return
-        p._busy(NETWORK, t0)
-        if p._dropping(NETWORK):
+        p._busy(self.rank, t0)
+        if p._dropping(self.rank):
             p._drop(frames)
             return
         p._raw_q.put((frames, (prepared, raw)))
@@ -97,7 +97,7 @@ class AsyncNetworkStage:
                 if len(self._in_flight) < self.requests:
                     # wait for a frame only when no call is running
                     batch = self._take(block=not self._in_flight)
-                    if batch is END:
+                    if batch is self.end:
                         break
                     if batch is not None:
                         self._start(batch)
@@ -106,4 +106,4 @@ class AsyncNetworkStage:
             while self._in_flight:
                 self._hand_on_oldest()
         finally:
-            self.pipeline._raw_q.put(END)
+            self.pipeline._raw_q.put(self.end)

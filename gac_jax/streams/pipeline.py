@@ -353,7 +353,7 @@ class StreamPipeline:
             return self._network
         from gac_jax.streams.async_network import AsyncNetworkStage
 
-        return AsyncNetworkStage(self, self.network_requests).run
+        return AsyncNetworkStage(self, self.network_requests, END, NETWORK).run
 
     def run(self) -> StreamReport:
         """Runs the stream to its end (or :meth:`stop` / :meth:`abort`); returns the report.
