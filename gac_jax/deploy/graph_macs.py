@@ -14,6 +14,7 @@ peak.
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 from collections import defaultdict
@@ -21,11 +22,17 @@ from collections import defaultdict
 COUNTED = ("Conv", "ConvTranspose", "Gemm", "MatMul")
 
 
-def _shapes(model) -> dict[str, tuple[int, ...]]:
-    """Static shapes of every value of ``model`` after shape inference (unknown dims: absent)."""
+def _shapes(model, batch: int) -> dict[str, tuple[int, ...]]:
+    """Static shapes of every value of ``model`` after shape inference, the graph inputs'
+    symbolic dimensions set to ``batch`` (values without a static shape: absent)."""
     import onnx
 
-    inferred = onnx.shape_inference.infer_shapes(model)
+    model = copy.deepcopy(model)
+    for value in model.graph.input:
+        for d in value.type.tensor_type.shape.dim:
+            if not d.HasField("dim_value"):
+                d.dim_value = batch
+    inferred = onnx.shape_inference.infer_shapes(model, data_prop=True)
     graph = inferred.graph
     shapes: dict[str, tuple[int, ...]] = {}
     for value in (*graph.input, *graph.value_info, *graph.output):
@@ -34,6 +41,9 @@ def _shapes(model) -> dict[str, tuple[int, ...]]:
             shapes[value.name] = tuple(int(d.dim_value) for d in dims)
     for init in graph.initializer:
         shapes[init.name] = tuple(int(d) for d in init.dims)
+    for node in graph.node:  # weights held by Constant nodes
+        if node.op_type == "Constant" and (value := _attribute(node, "value", None)) is not None:
+            shapes[node.output[0]] = tuple(int(d) for d in value.dims)
     return shapes
 
 
@@ -71,14 +81,14 @@ def node_macs(node, shapes: dict[str, tuple[int, ...]]) -> int:
     return math.prod(y) * k if len(y) else k
 
 
-def count_macs(model) -> dict[str, int]:
-    """MACs per counted op type of an ONNX model (a ``ModelProto`` or a file path), and
-    ``'total'``."""
+def count_macs(model, batch: int = 1) -> dict[str, int]:
+    """MACs per counted op type of an ONNX model (a ``ModelProto`` or a file path) for one
+    call with symbolic input dimensions set to ``batch``, and ``'total'``."""
     import onnx
 
     if isinstance(model, str | os.PathLike):
         model = onnx.load(os.fspath(model))
-    shapes = _shapes(model)
+    shapes = _shapes(model, batch)
     out: dict[str, int] = defaultdict(int)
     for node in model.graph.node:
         macs = node_macs(node, shapes)
