@@ -10,13 +10,17 @@ from __future__ import annotations
 import importlib.util
 import shutil
 import threading
+import time
 
 import cv2
+import numpy as np
 import pytest
 
 from gac_jax.api import Detector3D
 from gac_jax.cli import predict
-from gac_jax.streams import thread_budget
+from gac_jax.data.kitti import KittiObjects
+from gac_jax.streams import sources, thread_budget
+from gac_jax.streams.pipeline import StreamPipeline
 
 RUNTIMES = [r for r in ("onnxruntime", "openvino") if importlib.util.find_spec(r) is not None]
 
@@ -99,3 +103,119 @@ def test_a_smaller_annotated_video(workdir, clip, tmp_path, capsys):
     h = round(full.shape[0] / 2)
     assert frame.shape[0] in (h, h + 1)  # the encoder pads an odd height
     assert round(full.shape[1] / 2) < frame.shape[1] < full.shape[1]
+
+
+class SlowAsyncDetector:
+    """prepare/infer_async/finish: each call takes ``infer_s`` on a thread of its own; counts
+    the calls in flight. A result is the frame's index (its image value)."""
+
+    def __init__(self, infer_s: float, fail_at: int | None = None):
+        self.infer_s, self.fail_at = infer_s, fail_at
+        self.running = self.most = self.calls = 0
+        self._lock = threading.Lock()
+
+    def prepare(self, image, P2, plane):
+        return int(image[0, 0, 0])
+
+    def infer_async(self, prepared):
+        from concurrent.futures import ThreadPoolExecutor
+
+        with self._lock:
+            self.calls += 1
+            if self.fail_at is not None and self.calls > self.fail_at:
+                raise RuntimeError("network failed")
+            self.running += 1
+            self.most = max(self.most, self.running)
+
+        def work():
+            time.sleep(self.infer_s)
+            with self._lock:
+                self.running -= 1
+            return list(prepared)
+
+        return ThreadPoolExecutor(1).submit(work)
+
+    def finish(self, raw, prepared):
+        return [FakeResult(v) for v in raw]
+
+
+class FakeResult:
+    def __init__(self, value):
+        self.value = value
+
+    def to_kitti_objects(self):
+        return KittiObjects.from_arrays(type=["Car"], score=[self.value / 100])
+
+    def to_dict(self):
+        return {"value": self.value}
+
+
+class Frames:
+    live = False
+
+    def __init__(self, n, delay=0.0):
+        self.n, self.i, self.delay = n, 0, delay
+
+    def read(self):
+        if self.i >= self.n:
+            return None
+        time.sleep(self.delay)
+        i, self.i = self.i, self.i + 1
+        image = np.full((8, 8, 3), i, np.uint8)
+        return sources.Frame(i, f"{i:06d}", image, np.eye(3, 4), None, time.perf_counter())
+
+    def check_complete(self):
+        pass
+
+
+class Collect:
+    needs_record = True
+
+    def __init__(self):
+        self.values = []
+
+    def write(self, frame_id, index, objects, record):
+        self.values.append((index, record["value"]))
+
+
+@pytest.mark.parametrize("requests", [2, 3])
+def test_calls_in_flight_keep_the_frames_in_order(requests):
+    detector, results = SlowAsyncDetector(0.02), Collect()
+    pipeline = StreamPipeline(
+        Frames(12), detector, None, results, report_every=0, network_requests=requests
+    )
+    report = pipeline.run()
+    assert report.error is None and report.written == 12
+    assert results.values == [(i, i) for i in range(12)]
+    assert detector.most == requests  # never more calls in flight than asked, and that many
+
+
+def test_calls_in_flight_live_and_failing():
+    """``realtime``: the newest frames are taken, written + dropped == delivered and the last
+    frame is written; a failing call is reported and the stream ends."""
+    detector, results = SlowAsyncDetector(0.05), Collect()
+    pipeline = StreamPipeline(
+        Frames(30, delay=0.005),
+        detector,
+        None,
+        results,
+        realtime=True,
+        report_every=0,
+        network_requests=2,
+    )
+    report = pipeline.run()
+    assert report.error is None and report.dropped_live > 0
+    assert report.written + report.dropped_live == report.delivered == 30
+    assert results.values[-1] == (29, 29)
+    assert [i for i, _ in results.values] == sorted(i for i, _ in results.values)
+    failing = StreamPipeline(
+        Frames(10),
+        SlowAsyncDetector(0.0, fail_at=3),
+        None,
+        Collect(),
+        report_every=0,
+        network_requests=2,
+    )
+    report = failing.run()
+    assert isinstance(report.error, RuntimeError) and report.written <= 3
+    assert report.written + report.dropped_in_flight <= report.delivered
