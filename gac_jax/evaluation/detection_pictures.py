@@ -69,7 +69,7 @@ def detection_picture(
     grid = bev_grid_for_height(h)
     if grid.size[0] != h:  # rounding of the grid size: drawn apart and resized
         camera = viz.draw_detections(image, P2, predictions, ground_truth)
-        bev = viz.draw_bev(predictions, ground_truth, grid)
+        bev = viz.draw_bev(predictions, ground_truth, grid=grid)
         bev = cv2.resize(bev, (bev.shape[1], h), interpolation=cv2.INTER_AREA)
         return np.concatenate([camera, bev], axis=1)
     out = np.empty((h, w + grid.size[1], 3), np.uint8)

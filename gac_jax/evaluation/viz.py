@@ -205,45 +205,11 @@ def _draw_label(canvas, text, spot, color, scale=0.4):
 # --------------------------------------------------------------------------- camera view
 
 
-def draw_objects(
-    image: np.ndarray,
-    objects: KittiObjects,
-    P2: np.ndarray,
-    *,
-    color: Color | None = None,
-    thickness: int = 2,
-    draw_3d: bool = True,
-    draw_2d: bool = False,
-    show_labels: bool = True,
-    near: float = 0.1,
-) -> np.ndarray:
-    """Draws objects on a copy of ``image``.
-
-    Args:
-      image: (H, W, 3) uint8 RGB; P2: (3, 4) projection of this image.
-      objects: boxes in this image's camera frame; ``bbox`` in its pixels.
-      color: one colour for all, or None for :func:`class_color` per class.
-      draw_3d: projected wireframes with the front-face cross (DontCare and
-        boxes without dimensions are skipped; edges behind ``near`` are cut).
-      draw_2d: the ``bbox`` rectangles (thin).
-      show_labels: "type score" (score when finite) inside the top-left corner
-        of the object's 2D extent (projected 3D box, or ``bbox`` without 3D).
-
-    Returns:
-      (H, W, 3) uint8 RGB.
-    """
+def draw_objects(image: np.ndarray, objects: KittiObjects, P2: np.ndarray, **options) -> np.ndarray:
+    """Draws objects on a copy of ``image`` ((H, W, 3) uint8 RGB; ``options`` as
+    :func:`draw_objects_into`); returns the (H, W, 3) uint8 RGB picture."""
     canvas = _check_image(image).copy()
-    draw_objects_into(
-        canvas,
-        objects,
-        P2,
-        color=color,
-        thickness=thickness,
-        draw_3d=draw_3d,
-        draw_2d=draw_2d,
-        show_labels=show_labels,
-        near=near,
-    )
+    draw_objects_into(canvas, objects, P2, **options)
     return canvas
 
 
@@ -259,10 +225,21 @@ def draw_objects_into(
     show_labels: bool = True,
     near: float = 0.1,
 ) -> None:
-    """:func:`draw_objects` on ``canvas`` itself ((H, W, 3) uint8, RGB or BGR as the
-    colours are given; a view into a larger picture is fine): all wireframes in one
-    ``cv2.polylines`` call per run of one colour, then the 2D boxes likewise, then the
-    labels (highest score first placed, none covering another; :func:`_label_boxes`)."""
+    """Draws objects on ``canvas`` itself ((H, W, 3) uint8 RGB; a view into a larger picture
+    is fine): all wireframes in one ``cv2.polylines`` call per run of one colour, then the 2D
+    boxes likewise, then the labels (highest score placed first, none covering another:
+    :func:`_label_boxes`).
+
+    Args:
+      canvas: the picture; P2: (3, 4) projection of this image.
+      objects: boxes in this image's camera frame; ``bbox`` in its pixels.
+      color: one colour for all, or None for :func:`class_color` per class.
+      draw_3d: projected wireframes with the front-face cross (DontCare and
+        boxes without dimensions are skipped; edges behind ``near`` are cut).
+      draw_2d: the ``bbox`` rectangles (thin).
+      show_labels: "type score" (score when finite) inside the top-left corner
+        of the object's 2D extent (projected 3D box, or ``bbox`` without 3D).
+    """
     size = canvas.shape[:2]
     objects = objects.select(objects.type != "DontCare")
     colors = [color if color is not None else class_color(t) for t in objects.type]
@@ -310,32 +287,11 @@ def draw_objects_into(
             _draw_label(canvas, texts[i], spots[i], colors[i])
 
 
-def draw_detections(
-    image: np.ndarray,
-    P2: np.ndarray,
-    predictions: KittiObjects | None = None,
-    ground_truth: KittiObjects | None = None,
-    *,
-    draw_2d: bool = True,
-    show_labels: bool = True,
-    thickness: int = 2,
-) -> np.ndarray:
-    """Ground truth (thin, :data:`GT_COLOR`) under predictions (class colours, with scores).
-
-    Args:
-      image: (H, W, 3) uint8 RGB; P2: (3, 4) its projection.
-      predictions, ground_truth: :class:`KittiObjects` in this image's frame, or None.
-    """
+def draw_detections(image: np.ndarray, P2: np.ndarray, *objects, **options) -> np.ndarray:
+    """:func:`draw_detections_into` on a copy of ``image`` ((H, W, 3) uint8 RGB);
+    ``objects``: ``predictions[, ground_truth]``."""
     canvas = _check_image(image).copy()
-    draw_detections_into(
-        canvas,
-        P2,
-        predictions,
-        ground_truth,
-        draw_2d=draw_2d,
-        show_labels=show_labels,
-        thickness=thickness,
-    )
+    draw_detections_into(canvas, P2, *objects, **options)
     return canvas
 
 
@@ -349,7 +305,13 @@ def draw_detections_into(
     show_labels: bool = True,
     thickness: int = 2,
 ) -> None:
-    """:func:`draw_detections` on ``canvas`` itself ((H, W, 3) uint8 RGB, may be a view)."""
+    """Ground truth (thin, :data:`GT_COLOR`) under predictions (class colours, with scores),
+    on ``canvas`` itself ((H, W, 3) uint8 RGB, may be a view).
+
+    Args:
+      P2: (3, 4) projection of the picture.
+      predictions, ground_truth: :class:`KittiObjects` in this image's frame, or None.
+    """
     if ground_truth is not None:
         thin = max(thickness - 1, 1)
         draw_objects_into(
@@ -439,17 +401,10 @@ def _bev_boxes(canvas, grid, objects, color, thickness):
         _polylines(canvas, heading[start:stop], False, c, thickness)
 
 
-def draw_bev(
-    predictions: KittiObjects | None = None,
-    ground_truth: KittiObjects | None = None,
-    grid: BevGrid | None = None,
-    *,
-    thickness: int = 2,
-    background: Color = (24, 24, 24),
-    grid_color: Color = (80, 80, 80),
-) -> np.ndarray:
+def draw_bev(*objects, grid: BevGrid | None = None, **options) -> np.ndarray:
     """Bird's-eye view: footprints (bottom faces) with heading marks; GT under predictions.
 
+    ``objects``: ``predictions[, ground_truth]``; ``options`` as :func:`draw_bev_into`.
     Returns an (H, W, 3) uint8 RGB picture of ``grid.size`` (default 701 x 601
     for x in [-30, 30] m, z in [0, 70] m at 10 px/m). Ground truth is drawn in
     :data:`GT_COLOR`, predictions in their class colours; the heading mark
@@ -457,15 +412,7 @@ def draw_bev(
     """
     grid = grid or BevGrid()
     canvas = np.empty((*grid.size, 3), np.uint8)
-    draw_bev_into(
-        canvas,
-        predictions,
-        ground_truth,
-        grid,
-        thickness=thickness,
-        background=background,
-        grid_color=grid_color,
-    )
+    draw_bev_into(canvas, *objects, grid=grid, **options)
     return canvas
 
 
