@@ -179,7 +179,8 @@ def run_stream(
 
 def network_alone(detector, video: Path, calib: Path, frames: int) -> dict:
     """The stream's network stage alone (``infer`` of one prepared frame after another, the
-    decoding included) and, for an exported network, its bare call: median ms per frame."""
+    decoding included) and, for an exported network, its bare call: median ms per frame (with
+    calls in flight: the rate, :func:`calls_in_flight`)."""
     import numpy as np
 
     from gac_jax.streams import sources
@@ -191,17 +192,20 @@ def network_alone(detector, video: Path, calib: Path, frames: int) -> dict:
             prepared.append(detector.prepare(frame.image, frame.P2, frame.plane))
     finally:
         source.close()
-    infer, bare = [], []
     network = getattr(detector._predict, "network", None)
+    if detector.requests > 1:  # the rate with that many calls in flight
+        return calls_in_flight(detector, network, prepared)
+    infer, bare, cpu = [], [], []
     for p in prepared:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         detector.infer([p])
         infer.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
         if network is not None:
             t0 = time.perf_counter()
             network(p.image[None], p.P2[None], p.plane[None])
             bare.append(time.perf_counter() - t0)
-    out = {"infer_ms": 1e3 * float(np.median(infer))}
+    out = {"infer_ms": 1e3 * float(np.median(infer)), "infer_cpu_ms": 1e3 * float(np.median(cpu))}
     if bare:
         out["network_ms"] = 1e3 * float(np.median(bare))
     return out
@@ -259,6 +263,8 @@ def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
         }
     row.update(network_alone(detector, video, calib, args.net_frames))
     row["stream_over_network"] = row["fps_median"] * row["infer_ms"] / 1e3
+    # on a machine shared with other work: the share of the process's CPU the network takes
+    row["network_cpu_share"] = row["infer_cpu_ms"] / row["cpu_ms_per_frame"]
     row["wall_s"] = time.perf_counter() - t0
     return row
 
@@ -288,6 +294,12 @@ def print_row(label: str, row: dict) -> None:
         f"{row['stream_over_network']:.0%} of it",
         flush=True,
     )
+    print(
+        f"    network alone {row['infer_cpu_ms']:.1f} core-ms per frame = "
+        f"{row['network_cpu_share']:.0%} of the stream's core-ms (a CPU-bound stream's rate "
+        "as a fraction of the network-alone rate)",
+        flush=True,
+    )
     if "live" in row:
         live = row["live"]
         print(
@@ -296,6 +308,32 @@ def print_row(label: str, row: dict) -> None:
             f"ms, p95 {live['latency_p95_ms']:.0f} ms",
             flush=True,
         )
+
+
+def calls_in_flight(detector, network, prepared: list) -> dict:
+    """ms per frame of ``infer_async`` (and the bare network's ``start``) with
+    ``detector.requests`` calls in flight over ``prepared``."""
+    import collections
+
+    def rate(start) -> tuple[float, float]:
+        pending = collections.deque()
+        t0, c0 = time.perf_counter(), time.process_time()
+        for p in prepared:
+            if len(pending) == detector.requests:
+                pending.popleft().result()
+            pending.append(start(p))
+        while pending:
+            pending.popleft().result()
+        n = len(prepared)
+        return 1e3 * (time.perf_counter() - t0) / n, 1e3 * (time.process_time() - c0) / n
+
+    infer_ms, cpu_ms = rate(lambda p: detector.infer_async([p]))
+    out = {"infer_ms": infer_ms, "infer_cpu_ms": cpu_ms}
+    if network is not None:
+        out["network_ms"] = rate(lambda p: network.start(p.image[None], p.P2[None], p.plane[None]))[
+            0
+        ]
+    return out
 
 
 def mac_summary(rows: list[dict], name: str, macs: dict | None) -> None:
