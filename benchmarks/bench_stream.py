@@ -348,9 +348,14 @@ def mac_summary(rows: list[dict], name: str, macs: dict | None) -> None:
         achieved = macs["total"] / (ms / 1e3)
         peak, how = peak_macs_per_s(row["precision"] if row["runtime"] != "jax" else "f32")
         row["macs"], row["achieved_macs_per_s"], row["peak_macs_per_s"] = macs, achieved, peak
+        # per core-second the network's threads ran: what a shared machine's load leaves alone
+        per_core = macs["total"] / (row["infer_cpu_ms"] / 1e3)
+        row["macs_per_core_s"] = per_core
+        cores = cpu_info()["cores"]
         print(
             f"    {row['label']:24s} {achieved / 1e9:7.1f} GMAC/s = {achieved / peak:6.1%} of "
-            f"{peak / 1e9:.0f} GMAC/s ({how})"
+            f"{peak / 1e9:.0f} GMAC/s ({how}); per busy core {per_core / 1e9:.1f} GMAC/s = "
+            f"{per_core * cores / peak:.1%} of a core's peak"
         )
 
 
