@@ -23,6 +23,7 @@ wall-clock figures), plus the machine and its load. Export, int8 calibration and
         [--paper-frames 20] [--rounds 2] [--only 'jax f32,openvino int8'] [--batch-size 1]
         [--threads N] [--workdir W] [--live FPS] [--json OUT] [--requests 1,2]
         [--no-video] [--video-scale S] [--container mp4|avi] [--net-frames N] [--profile]
+        [--clock-ghz G]
 
 Core accounting per row: each stage's CPU time per frame (its thread's), the XLA threads'
 (decoding; the jax runtime's network), the rest (the ONNX Runtime / OpenVINO inference
@@ -33,7 +34,12 @@ Per config a summary: the network's MACs (counted from the exported ONNX graph,
 :mod:`gac_jax.deploy.graph_macs`), its achieved MAC/s and the share of the CPU's peak for
 that precision (an estimate from the instruction set and clock: benchmarks/core_accounting.py);
 ``--profile``: OpenVINO's per-layer performance counters summed per layer type and executed
-precision. The stream runs with the CLI's thread budget (:mod:`gac_jax.streams.thread_budget`);
+precision. The achieved rate is also given per core-second the network ran (the network
+alone's process CPU time), which the load of a shared machine leaves alone; a share above
+100 % means the cores ran above the clock assumed (a VM shows its nominal clock; give the
+boost clock with ``--clock-ghz``) or the runtime multiplied less than the graph counts
+(OpenVINO's float32 Winograd convolutions). The stream runs with the CLI's thread budget
+(:mod:`gac_jax.streams.thread_budget`);
 ``--requests 1,2`` times each ONNX Runtime / OpenVINO row with that many network calls in
 flight (``--network-requests``); ``--no-video``, ``--video-scale S`` and ``--container avi``
 (Motion JPEG instead of MPEG-4) as the CLI's options.
@@ -54,7 +60,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from core_accounting import ThreadCpu, cpu_info, openvino_layer_profile, peak_macs_per_s
+from core_accounting import ThreadCpu, cpu_info, exported_onnx, mac_summary, profile
 from machine_info import describe_machine, one_line  # benchmarks/ is on sys.path
 from random_weights import random_variables, timing_detector_config
 
@@ -336,57 +342,6 @@ def calls_in_flight(detector, network, prepared: list) -> dict:
     return out
 
 
-def mac_summary(rows: list[dict], name: str, macs: dict | None) -> None:
-    """The network's MACs, achieved MAC/s (network alone) and share of the CPU's peak."""
-    if not macs:
-        return
-    print(f"  network: {macs['total'] / 1e9:.2f} GMAC per frame (exported ONNX graph)")
-    for row in rows:
-        if row["config"] != name:
-            continue
-        ms = row.get("network_ms", row["infer_ms"])
-        achieved = macs["total"] / (ms / 1e3)
-        peak, how = peak_macs_per_s(row["precision"] if row["runtime"] != "jax" else "f32")
-        row["macs"], row["achieved_macs_per_s"], row["peak_macs_per_s"] = macs, achieved, peak
-        # per core-second the network's threads ran: what a shared machine's load leaves alone
-        per_core = macs["total"] / (row["infer_cpu_ms"] / 1e3)
-        row["macs_per_core_s"] = per_core
-        cores = cpu_info()["cores"]
-        print(
-            f"    {row['label']:24s} {achieved / 1e9:7.1f} GMAC/s = {achieved / peak:6.1%} of "
-            f"{peak / 1e9:.0f} GMAC/s ({how}); per busy core {per_core / 1e9:.1f} GMAC/s = "
-            f"{per_core * cores / peak:.1%} of a core's peak"
-        )
-
-
-def exported_onnx(detector) -> Path | None:
-    network = getattr(getattr(detector, "_predict", None), "network", None)
-    if network is None:
-        return None
-    onnx = Path(network.path).with_name("model.onnx")
-    return onnx if onnx.exists() else None
-
-
-def profile(detector, row: dict, threads: int) -> None:
-    """OpenVINO's per-layer counters of ``detector``'s network, per layer type."""
-    import numpy as np
-
-    network = detector._predict.network
-    h, w = detector.input_size
-    feed = {
-        "images": np.zeros((1, h, w, 3), np.float32),
-        "P2": np.array([np.eye(3, 4)], np.float32) * [[w], [w], [1]],
-        "plane": np.array([[0, -1, 0, 1.65]], np.float32),
-    }
-    prof = openvino_layer_profile(network.path, row["precision"], threads, feed)
-    row["profile"] = prof
-    total = prof["total_ms"]
-    shares = ", ".join(f"{k} {v / total:.0%}" for k, v in list(prof["by_type"].items())[:8])
-    print(f"    OpenVINO per layer type ({total / prof['runs']:.1f} ms per call): {shares}")
-    shares = ", ".join(f"{k} {v / total:.0%}" for k, v in prof["by_precision"].items())
-    print(f"    by executed precision: {shares}", flush=True)
-
-
 def main() -> None:
     from gac_jax.api.detector import Detector3D
     from gac_jax.deploy.graph_macs import count_macs
@@ -415,6 +370,11 @@ def main() -> None:
     p.add_argument("--container", default="mp4", choices=("mp4", "avi"))
     p.add_argument("--net-frames", type=int, default=10, help="frames of the network alone")
     p.add_argument("--profile", action="store_true", help="OpenVINO per-layer counters")
+    p.add_argument(
+        "--clock-ghz",
+        type=float,
+        help="the cores' clock for the peak (default: /proc/cpuinfo's, a VM's nominal clock)",
+    )
     args = p.parse_args()
 
     sources.quiet_video_backend()
@@ -483,7 +443,7 @@ def main() -> None:
                 f"  fastest: {best['label']} {best['fps_median']:.1f} frames/s end to end "
                 f"({best['stream_over_network']:.0%} of its network alone)"
             )
-            mac_summary(rows, name, macs)
+            mac_summary(rows, name, macs, args.clock_ghz)
     info["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
     print(f"\nload average (1 min) at the end: {info['load_avg_1min_end']}")
     if args.json:

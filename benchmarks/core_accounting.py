@@ -140,3 +140,58 @@ def openvino_layer_profile(model_path, precision: str, threads: int, feed: dict,
         "total_ms": total,
         "runs": runs,
     }
+
+
+def mac_summary(rows: list[dict], name: str, macs: dict | None, clock_ghz=None) -> None:
+    """The network's MACs, achieved MAC/s (network alone) and share of the CPU's peak
+    (``clock_ghz``: the clock to assume instead of ``/proc/cpuinfo``'s)."""
+    if not macs:
+        return
+    info = cpu_info()
+    if clock_ghz:
+        info["mhz"] = 1e3 * clock_ghz
+    print(f"  network: {macs['total'] / 1e9:.2f} GMAC per frame (exported ONNX graph)")
+    for row in rows:
+        if row["config"] != name:
+            continue
+        ms = row.get("network_ms", row["infer_ms"])
+        achieved = macs["total"] / (ms / 1e3)
+        peak, how = peak_macs_per_s(row["precision"] if row["runtime"] != "jax" else "f32", info)
+        row["macs"], row["achieved_macs_per_s"], row["peak_macs_per_s"] = macs, achieved, peak
+        # per core-second the network's threads ran: what a shared machine's load leaves alone
+        per_core = macs["total"] / (row["infer_cpu_ms"] / 1e3)
+        row["macs_per_core_s"] = per_core
+        cores = info["cores"]
+        print(
+            f"    {row['label']:24s} {achieved / 1e9:7.1f} GMAC/s = {achieved / peak:6.1%} of "
+            f"{peak / 1e9:.0f} GMAC/s ({how}); per busy core {per_core / 1e9:.1f} GMAC/s = "
+            f"{per_core * cores / peak:.1%} of a core's peak"
+        )
+
+
+def exported_onnx(detector) -> Path | None:
+    network = getattr(getattr(detector, "_predict", None), "network", None)
+    if network is None:
+        return None
+    onnx = Path(network.path).with_name("model.onnx")
+    return onnx if onnx.exists() else None
+
+
+def profile(detector, row: dict, threads: int) -> None:
+    """OpenVINO's per-layer counters of ``detector``'s network, per layer type."""
+    import numpy as np
+
+    network = detector._predict.network
+    h, w = detector.input_size
+    feed = {
+        "images": np.zeros((1, h, w, 3), np.float32),
+        "P2": np.array([np.eye(3, 4)], np.float32) * [[w], [w], [1]],
+        "plane": np.array([[0, -1, 0, 1.65]], np.float32),
+    }
+    prof = openvino_layer_profile(network.path, row["precision"], threads, feed)
+    row["profile"] = prof
+    total = prof["total_ms"]
+    shares = ", ".join(f"{k} {v / total:.0%}" for k, v in list(prof["by_type"].items())[:8])
+    print(f"    OpenVINO per layer type ({total / prof['runs']:.1f} ms per call): {shares}")
+    shares = ", ".join(f"{k} {v / total:.0%}" for k, v in prof["by_precision"].items())
+    print(f"    by executed precision: {shares}", flush=True)
