@@ -19,10 +19,10 @@ Ctrl-C stops reading and finishes the frames in flight (twice: drops them); the 
 playable.
 
 Throughput: ``--no-video`` writes the results only; ``--video-scale 0.5`` draws and encodes a
-half-size annotated frame; the container sets the encoder (``.mp4``: MPEG-4 part 2, ``.avi`` /
-``.mkv``: Motion JPEG, cheaper to encode and larger); ``--network-requests 2`` keeps two
-network calls in flight (OpenVINO: two streams sharing the ``--threads``). The stream sizes
-its threads as one budget (:mod:`gac_jax.streams.thread_budget`) and prints it.
+half-size annotated frame; the container sets the encoder (``.mp4``: MPEG-4 part 2; ``.avi``
+/ ``.mkv``: Motion JPEG, about as costly per frame, larger files); ``--network-requests 2``
+keeps two network calls in flight (OpenVINO: two streams sharing the ``--threads``). The
+stream sizes its threads as one budget (:mod:`gac_jax.streams.thread_budget`), printed.
 """
 
 from __future__ import annotations
