@@ -21,7 +21,28 @@ wall-clock figures), plus the machine and its load. Export, int8 calibration and
 
     python benchmarks/bench_stream.py [--configs default,paper] [--frames 120]
         [--paper-frames 20] [--rounds 2] [--only 'jax f32,openvino int8'] [--batch-size 1]
-        [--threads N] [--workdir W] [--live FPS] [--json OUT]
+        [--threads N] [--workdir W] [--live FPS] [--json OUT] [--requests 1,2]
+        [--no-video] [--video-scale S] [--container mp4|avi] [--net-frames N] [--profile]
+        [--clock-ghz G]
+
+Core accounting per row: each stage's CPU time per frame (its thread's), the XLA threads'
+(decoding; the jax runtime's network), the rest (the ONNX Runtime / OpenVINO inference
+threads and the video encoder's own threads: process CPU minus the stage and XLA threads),
+the total core-ms per frame against wall x cores, and the stream's rate as a fraction of the
+network-alone rate measured in the same run (``infer`` on one prepared frame after another).
+Per config a summary: the network's MACs (counted from the exported ONNX graph,
+:mod:`gac_jax.deploy.graph_macs`), its achieved MAC/s and the share of the CPU's peak for
+that precision (an estimate from the instruction set and clock: benchmarks/core_accounting.py);
+``--profile``: OpenVINO's per-layer performance counters summed per layer type and executed
+precision. The achieved rate is also given per core-second the network ran (the network
+alone's process CPU time), which the load of a shared machine leaves alone; a share above
+100 % means the cores ran above the clock assumed (a VM shows its nominal clock; give the
+boost clock with ``--clock-ghz``) or the runtime multiplied less than the graph counts
+(OpenVINO's float32 Winograd convolutions). The stream runs with the CLI's thread budget
+(:mod:`gac_jax.streams.thread_budget`);
+``--requests 1,2`` times each ONNX Runtime / OpenVINO row with that many network calls in
+flight (``--network-requests``); ``--no-video``, ``--video-scale S`` and ``--container avi``
+(Motion JPEG instead of MPEG-4) as the CLI's options.
 
 ``--workdir W`` adds rows of a trained detector (W's checkpoint and config: its score
 threshold, so the post-processing sees what that detector keeps; copy a run folder first,
@@ -39,6 +60,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from core_accounting import ThreadCpu, cpu_info, exported_onnx, mac_summary, profile
 from machine_info import describe_machine, one_line  # benchmarks/ is on sys.path
 from random_weights import random_variables, timing_detector_config
 
@@ -96,15 +118,25 @@ def random_detector(name: str, tmp: Path):
 
 
 def run_stream(
-    detector, video: Path, calib: Path, out: Path, batch_size: int, live_fps: float | None = None
+    detector,
+    video: Path,
+    calib: Path,
+    out: Path,
+    args,
+    live_fps: float | None = None,
 ) -> dict:
     """One pass of the stream pipeline over ``video`` (``live_fps``: paced as a camera at that
-    rate, newest frame kept, as ``--realtime``); returns its rates and latencies."""
+    rate, newest frame kept, as ``--realtime``); returns its rates, latencies and CPU times."""
+    import functools
+
+    from gac_jax.evaluation.detection_pictures import detection_picture
     from gac_jax.streams import outputs, sources
     from gac_jax.streams.pipeline import StreamPipeline
 
     source = sources.VideoSource(video, sources.load_projection(calib), str(calib))
-    annotated = outputs.AnnotatedVideo(out / "annotated.mp4", source.fps)
+    annotated = None
+    if not args.no_video:
+        annotated = outputs.AnnotatedVideo(out / f"annotated.{args.container}", source.fps)
     results = outputs.KittiResults(out / "data")
     if live_fps:
         source = sources.PacedSource(source, live_fps)
@@ -113,30 +145,76 @@ def run_stream(
         detector,
         annotated,
         results,
-        batch_size=1 if live_fps else batch_size,
+        batch_size=1 if live_fps else args.batch_size,
         realtime=bool(live_fps),
         report_every=0,
+        draw=functools.partial(detection_picture, scale=args.video_scale),
+        network_requests=detector.requests,
     )
-    cpu0 = time.process_time()
+    threads = ThreadCpu()
+    threads.start()
+    cpu0, t0 = time.process_time(), time.perf_counter()
     try:
         report = pipeline.run()
+        other = threads.stop()  # before the encoder's threads end with the writer
+        cpu_s, wall_s = time.process_time() - cpu0, time.perf_counter() - t0
     finally:
-        annotated.close()
+        if annotated is not None:
+            annotated.close()
         source.close()
-    cpu_s = time.process_time() - cpu0
     if report.error is not None:
         raise report.error
-    latencies = pipeline.rates.latencies().tolist()
+    n = max(report.written, 1)
+    stage_cpu = pipeline.stage_ms(cpu=True)
+    xla_ms = 1e3 * other["xla_s"] / n
     return {
         "fps": report.rates["fps"],
-        "latencies": latencies,
+        "latencies": pipeline.rates.latencies().tolist(),
         "frames": report.written,
         "delivered": report.delivered,
         "dropped": report.dropped_live,
         "stage_ms": report.stage_ms,
-        "stage_cpu_ms": pipeline.stage_ms(cpu=True),
-        "cpu_ms_per_frame": 1e3 * cpu_s / max(report.written, 1),
+        "stage_cpu_ms": stage_cpu,
+        "xla_cpu_ms": xla_ms,
+        # runtime inference threads + encoder threads + the rest of the process
+        "other_cpu_ms": 1e3 * cpu_s / n - sum(stage_cpu.values()) - xla_ms,
+        "cpu_ms_per_frame": 1e3 * cpu_s / n,
+        "wall_core_ms_per_frame": 1e3 * wall_s * cpu_info()["cores"] / n,
     }
+
+
+def network_alone(detector, video: Path, calib: Path, frames: int) -> dict:
+    """The stream's network stage alone (``infer`` of one prepared frame after another, the
+    decoding included) and, for an exported network, its bare call: median ms per frame (with
+    calls in flight: the rate, :func:`calls_in_flight`)."""
+    import numpy as np
+
+    from gac_jax.streams import sources
+
+    source = sources.VideoSource(video, sources.load_projection(calib), str(calib))
+    try:
+        prepared = []
+        while len(prepared) < frames and (frame := source.read()) is not None:
+            prepared.append(detector.prepare(frame.image, frame.P2, frame.plane))
+    finally:
+        source.close()
+    network = getattr(detector._predict, "network", None)
+    if detector.requests > 1:  # the rate with that many calls in flight
+        return calls_in_flight(detector, network, prepared)
+    infer, bare, cpu = [], [], []
+    for p in prepared:
+        t0, c0 = time.perf_counter(), time.process_time()
+        detector.infer([p])
+        infer.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        if network is not None:
+            t0 = time.perf_counter()
+            network(p.image[None], p.P2[None], p.plane[None])
+            bare.append(time.perf_counter() - t0)
+    out = {"infer_ms": 1e3 * float(np.median(infer)), "infer_cpu_ms": 1e3 * float(np.median(cpu))}
+    if bare:
+        out["network_ms"] = 1e3 * float(np.median(bare))
+    return out
 
 
 def with_dtype(loaded, runtime: str, precision: str):
@@ -158,10 +236,7 @@ def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
     from gac_jax.streams.rates import percentile_ms
 
     t0 = time.perf_counter()
-    results = [
-        run_stream(detector, video, calib, out / str(r), args.batch_size)
-        for r in range(args.rounds)
-    ]
+    results = [run_stream(detector, video, calib, out / str(r), args) for r in range(args.rounds)]
     latencies = [x for r in results for x in r["latencies"]]
 
     def median_of(key):
@@ -176,11 +251,15 @@ def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
         "stage_ms": median_of("stage_ms"),
         "stage_cpu_ms": median_of("stage_cpu_ms"),
         "cpu_ms_per_frame": float(np.median([r["cpu_ms_per_frame"] for r in results])),
+        **{
+            k: float(np.median([r[k] for r in results]))
+            for k in ("xla_cpu_ms", "other_cpu_ms", "wall_core_ms_per_frame")
+        },
         "frames_written": [r["frames"] for r in results],
         "load_avg_1min": round(os.getloadavg()[0], 2),
     }
     if args.live:  # one pass paced as a camera: what a live stream keeps and its latency
-        live = run_stream(detector, video, calib, out / "live", 1, args.live)
+        live = run_stream(detector, video, calib, out / "live", args, args.live)
         row["live"] = {
             "fps": args.live,
             "delivered": live["delivered"],
@@ -188,6 +267,10 @@ def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
             "latency_median_ms": percentile_ms(live["latencies"], 50),
             "latency_p95_ms": percentile_ms(live["latencies"], 95),
         }
+    row.update(network_alone(detector, video, calib, args.net_frames))
+    row["stream_over_network"] = row["fps_median"] * row["infer_ms"] / 1e3
+    # on a machine shared with other work: the share of the process's CPU the network takes
+    row["network_cpu_share"] = row["infer_cpu_ms"] / row["cpu_ms_per_frame"]
     row["wall_s"] = time.perf_counter() - t0
     return row
 
@@ -195,7 +278,7 @@ def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
 def print_row(label: str, row: dict) -> None:
     rounds = ", ".join(f"{f:.2f}" for f in row["fps_rounds"])
     print(
-        f"  {label:17s} {row['fps_median']:6.2f} frames/s  latency median "
+        f"  {label:24s} {row['fps_median']:6.2f} frames/s  latency median "
         f"{row['latency_median_ms']:7.0f} ms  p95 {row['latency_p95_ms']:7.0f} ms  "
         f"(rounds {rounds}; set-up {row['setup_s']:.0f} s; load {row['load_avg_1min']})",
         flush=True,
@@ -204,7 +287,25 @@ def print_row(label: str, row: dict) -> None:
     print(f"    ms per frame, each stage (overlapping): {busy}")
     busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_cpu_ms"].items())
     print(f"    CPU ms per frame of each stage's thread: {busy}")
-    print(f"    process CPU {row['cpu_ms_per_frame']:.0f} ms per frame (all threads)", flush=True)
+    print(
+        f"    + XLA threads {row['xla_cpu_ms']:.1f}, runtime/encoder/other threads "
+        f"{row['other_cpu_ms']:.1f}; total {row['cpu_ms_per_frame']:.1f} core-ms per frame "
+        f"of {row['wall_core_ms_per_frame']:.1f} (wall x cores: "
+        f"{row['cpu_ms_per_frame'] / row['wall_core_ms_per_frame']:.0%} busy)"
+    )
+    bare = f", bare network call {row['network_ms']:.1f} ms" if "network_ms" in row else ""
+    print(
+        f"    network alone (infer, decoding included) {row['infer_ms']:.1f} ms = "
+        f"{1e3 / row['infer_ms']:.1f} frames/s{bare}; the stream runs at "
+        f"{row['stream_over_network']:.0%} of it",
+        flush=True,
+    )
+    print(
+        f"    network alone {row['infer_cpu_ms']:.1f} core-ms per frame = "
+        f"{row['network_cpu_share']:.0%} of the stream's core-ms (a CPU-bound stream's rate "
+        "as a fraction of the network-alone rate)",
+        flush=True,
+    )
     if "live" in row:
         live = row["live"]
         print(
@@ -215,11 +316,38 @@ def print_row(label: str, row: dict) -> None:
         )
 
 
-def main() -> None:
+def calls_in_flight(detector, network, prepared: list) -> dict:
+    """ms per frame of ``infer_async`` (and the bare network's ``start``) with
+    ``detector.requests`` calls in flight over ``prepared``."""
+    import collections
 
+    def rate(start) -> tuple[float, float]:
+        pending = collections.deque()
+        t0, c0 = time.perf_counter(), time.process_time()
+        for p in prepared:
+            if len(pending) == detector.requests:
+                pending.popleft().result()
+            pending.append(start(p))
+        while pending:
+            pending.popleft().result()
+        n = len(prepared)
+        return 1e3 * (time.perf_counter() - t0) / n, 1e3 * (time.process_time() - c0) / n
+
+    infer_ms, cpu_ms = rate(lambda p: detector.infer_async([p]))
+    out = {"infer_ms": infer_ms, "infer_cpu_ms": cpu_ms}
+    if network is not None:
+        out["network_ms"] = rate(lambda p: network.start(p.image[None], p.P2[None], p.plane[None]))[
+            0
+        ]
+    return out
+
+
+def main() -> None:
     from gac_jax.api.detector import Detector3D
+    from gac_jax.deploy.graph_macs import count_macs
     from gac_jax.deploy.runtimes import RUNTIME_PRECISIONS, check_runtime, cpu_flags
     from gac_jax.streams import sources
+    from gac_jax.streams.thread_budget import apply_host_threads, plan_thread_budget
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--configs", default="default,paper")
@@ -236,17 +364,33 @@ def main() -> None:
         "--live", type=float, metavar="FPS", help="also one pass paced as a camera at FPS"
     )
     p.add_argument("--json", type=Path)
+    p.add_argument("--requests", default="1,2", help="network calls in flight, per row")
+    p.add_argument("--no-video", action="store_true", help="results only")
+    p.add_argument("--video-scale", type=float, default=1.0)
+    p.add_argument("--container", default="mp4", choices=("mp4", "avi"))
+    p.add_argument("--net-frames", type=int, default=10, help="frames of the network alone")
+    p.add_argument("--profile", action="store_true", help="OpenVINO per-layer counters")
+    p.add_argument(
+        "--clock-ghz",
+        type=float,
+        help="the cores' clock for the peak (default: /proc/cpuinfo's, a VM's nominal clock)",
+    )
     args = p.parse_args()
 
     sources.quiet_video_backend()
+    budget = plan_thread_budget(args.threads)
+    apply_host_threads(budget)
     info = describe_machine("jax", "onnxruntime", "openvino", "cv2")
     flags = cpu_flags()
     print(one_line(info))
     print(
         f"CPU flags: AMX-BF16 {flags['amx_bf16']}, AMX-INT8 {flags['amx_int8']}, "
-        f"AVX512_BF16 {flags['avx512_bf16']}"
+        f"AVX512_BF16 {flags['avx512_bf16']}, int8 dot products {flags['int8_dot']}"
     )
+    video_kind = "no video" if args.no_video else f"{args.container} video x{args.video_scale:g}"
+    print(f"{budget.describe('openvino')}; output: {video_kind}")
     combos = [c for c in RUNTIME_PRECISIONS if not args.only or " ".join(c) in args.only.split(",")]
+    requests = [int(r) for r in args.requests.split(",") if r]
     names = [n for n in args.configs.split(",") if n]
     if args.workdir is not None:
         names.append("trained")
@@ -259,41 +403,52 @@ def main() -> None:
             what = f"{args.workdir}, its config" if name == "trained" else CONFIGS[name]
             print(f"\n=== {name} detector ({what}), {n}-frame 1242x375 MPEG-4 video ===")
             loaded = random_detector(name, tmp) if name != "trained" else None
+            macs = None
             for runtime, precision in combos:
-                label = f"{runtime} {precision}"
                 try:
                     check_runtime(runtime, precision)
                 except Exception as e:  # noqa: BLE001 - reported, not timed
-                    print(f"  skip {label}: {e}", flush=True)
+                    print(f"  skip {runtime} {precision}: {e}", flush=True)
                     continue
-                t0 = time.perf_counter()
-                model = {
-                    "runtime": runtime,
-                    "precision": precision,
-                    "threads": args.threads if runtime != "jax" else None,
-                    "batch_size": args.batch_size,
-                }
-                if loaded is None:
-                    detector = Detector3D.from_workdir(args.workdir, **model)
-                else:
-                    detector = Detector3D(
-                        with_dtype(loaded, runtime, precision), tmp / f"workdir_{name}", **model
-                    )
-                detector.warmup()
-                row = {"config": name, "runtime": runtime, "precision": precision, "frames": n}
-                row.update(measure(detector, video, calib, tmp / f"out_{name}_{label}", args))
-                row["setup_s"] = time.perf_counter() - t0 - row.pop("wall_s")
-                rows.append(row)
-                print_row(label, row)
+                for r in requests if runtime != "jax" else [1]:
+                    label = f"{runtime} {precision}" + (f" {r} requests" if r > 1 else "")
+                    t0 = time.perf_counter()
+                    model = {
+                        "runtime": runtime,
+                        "precision": precision,
+                        "threads": budget.network_threads if runtime != "jax" else None,
+                        "batch_size": args.batch_size,
+                        "requests": r,
+                    }
+                    if loaded is None:
+                        detector = Detector3D.from_workdir(args.workdir, **model)
+                    else:
+                        loaded_dtype = with_dtype(loaded, runtime, precision)
+                        detector = Detector3D(loaded_dtype, tmp / f"workdir_{name}", **model)
+                    detector.warmup()
+                    row = {"config": name, "runtime": runtime, "precision": precision}
+                    row.update({"requests": r, "label": label, "frames": n})
+                    out = tmp / f"out_{name}_{label}"
+                    row.update(measure(detector, video, calib, out, args))
+                    row["setup_s"] = time.perf_counter() - t0 - row.pop("wall_s")
+                    rows.append(row)
+                    print_row(label, row)
+                    if macs is None and (onnx := exported_onnx(detector)) is not None:
+                        macs = count_macs(onnx)
+                    if args.profile and runtime == "openvino" and r == 1:
+                        profile(detector, row, budget.network_threads)
+                    del detector
             best = max((r for r in rows if r["config"] == name), key=lambda r: r["fps_median"])
             print(
-                f"  fastest: {best['runtime']} {best['precision']} {best['fps_median']:.1f} "
-                "frames/s end to end"
+                f"  fastest: {best['label']} {best['fps_median']:.1f} frames/s end to end "
+                f"({best['stream_over_network']:.0%} of its network alone)"
             )
+            mac_summary(rows, name, macs, args.clock_ghz)
     info["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
     print(f"\nload average (1 min) at the end: {info['load_avg_1min_end']}")
     if args.json:
-        args.json.write_text(json.dumps({"machine": info, "cpu_flags": flags, "rows": rows}))
+        result = {"machine": info, "cpu_flags": flags, "rows": rows}
+        args.json.write_text(json.dumps(result, default=str))
 
 
 if __name__ == "__main__":

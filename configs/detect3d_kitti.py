@@ -8,8 +8,10 @@ Command (KITTI object folder with ImageSets/{train,val}.txt = Chen's split)::
 
 ``model.pretrained_backbone`` is an ImageNet ResNet-101 converted with
 ``python -m gac_jax.weights.convert torchvision-resnet --depth 101 resnet101-5d3b4d8f.pth OUT``.
-Variants (comma-separated, e.g. ``:multiclass,conv``): ``multiclass`` (Car, Pedestrian,
-Cyclist) and the rows of the paper's Table 3 (see :func:`apply_ablation`): ``nofilter``,
+Variants (comma-separated, e.g. ``:multiclass,conv``): ``authors`` (the conventions the
+authors' released weights were trained with: P2 scaled by 288/275 after the resize,
+``data.resize_calibration = 'authors'``, and the release-1.0 GAC offset), ``multiclass`` (Car,
+Pedestrian, Cyclist) and the rows of the paper's Table 3 (see :func:`apply_ablation`): ``nofilter``,
 ``ohem``, ``conv``, ``disparity``, ``deformable``; ``baseline`` (= no variant) is the paper's
 model.
 
@@ -44,6 +46,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.crop_top = 100
     c.data.height = 288
     c.data.width = 1280
+    # How the resize moves P2: 'grid' (the exact sampling grid of cv2.resize, fx x 1301/1242 on
+    # KITTI) for training from scratch; 'authors' (fx and fy x 288/275, the reference's
+    # convention) for the released weights, which were trained with it (variant ``authors``)
+    c.data.resize_calibration = "grid"
     c.data.flip_prob = 0.5
     c.data.photometric = True
     c.data.reproject_boxes = True  # train on 2D boxes re-derived from the 3D labels (reference)
@@ -147,10 +153,13 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         c.anchors.ratios = (0.5, 1.0, 2.0)
         c.loss.balance_weights = (20.0, 40.0, 40.0)
         c.eval.class_agnostic_nms = False
+    if "authors" in variants:  # the authors' released weights: their conventions
+        c.data.resize_calibration = "authors"
+        c.model.gac.offset_formula = "reference_v1"
     apply_ablation(c, variants)
-    unknown = variants - {"car", "multiclass", *ABLATIONS}
+    unknown = variants - {"car", "multiclass", "authors", *ABLATIONS}
     if unknown:
-        known = ", ".join(["car", "multiclass", *ABLATIONS])
+        known = ", ".join(["car", "multiclass", "authors", *ABLATIONS])
         raise ValueError(f"unknown variants {sorted(unknown)} (known: {known})")
     return c
 

@@ -120,3 +120,30 @@ def test_resize_is_float_for_every_input_dtype(frames):
     np.testing.assert_array_equal(a, b)
     padded = tr.CropOrPadWidth(520)({**sample, "image": a})["image"]
     assert padded.dtype == np.float32 and not padded[:, 500:].any()
+
+
+def test_authors_variant_gives_the_authors_p2(frames):
+    """``configs/detect3d_kitti.py:authors`` scales P2 by 288/275 after the crop, as the
+    reference does (the exact grid's 1301/1242 is the default), to float32 rounding of the
+    network's P2 input; the pixels are the same as with the exact grid."""
+    authors = load_config(f"{CONFIG}:authors")
+    d = authors.data
+    assert d.resize_calibration == "authors" and authors.model.gac.offset_formula == "reference_v1"
+    grid = eval_transform(load_config(str(CONFIG)), normalize=False)
+    chain = eval_transform(authors, normalize=False)
+    for sample in frames:
+        h, w = sample["image"].shape[:2]
+        _, ref_P2, _, new_w = reference_chain(
+            sample["image"], sample["P2"], d.crop_top, d.height, d.width
+        )
+        out = chain(dict(sample))
+        np.testing.assert_allclose(out["P2"].astype(np.float32), ref_P2.astype(np.float32), 0, 0)
+        exact = grid(dict(sample))
+        np.testing.assert_array_equal(out["image"], exact["image"])
+        s = d.height / (h - d.crop_top)
+        assert out["P2"][0, 0] / sample["P2"][0, 0] == pytest.approx(s, rel=1e-12)
+        assert exact["P2"][0, 0] / sample["P2"][0, 0] == pytest.approx(new_w / w, rel=1e-12)
+        if (h, w) == (375, 1242):  # the common KITTI size: 288/275 against 1301/1242
+            assert (s, new_w / w) == (288 / 275, 1301 / 1242)
+        # original pixels map back through the same convention
+        np.testing.assert_allclose(out["image_transform"] @ [0.0, d.crop_top, 1.0], [0, 0, 1])

@@ -257,3 +257,66 @@ def test_2d_boxes_trace_the_bbox_border():
     )
     assert on_border.all() and _inside(mask, [20, 30, 120, 80], 1)
     assert mask[30, 20:121].mean() > 0.9 and mask[30:81, 120].mean() > 0.9
+
+
+def test_wireframes_in_one_call_equal_segment_by_segment(frames):
+    """The vectorised drawing (one cv2.polylines per run of one colour) gives the pixels of
+    cv2.line per segment in the same order, byte for byte (the reference loop written out)."""
+    sample = next(f for f in frames if f["frame_id"] == "000036")
+    gt = sample["objects"]
+    objects = gt.select(viz.drawable(gt))
+    image, P2 = np.asarray(sample["image"]), sample["P2"]
+    segments, valid = viz.box3d_segments(
+        objects.location, objects.dimensions, objects.rotation_y, P2
+    )
+    clipped, visible = viz.clip_segments(segments, image.shape[:2])
+    reference = image.copy()
+    for k in range(len(objects)):
+        colour = viz.class_color(objects.type[k])
+        for (p, q), ok in zip(clipped[k], visible[k] & valid[k], strict=True):
+            if ok:
+                a = tuple(int(round(c * 16)) for c in p)
+                b = tuple(int(round(c * 16)) for c in q)
+                cv2.line(reference, a, b, colour, 2, cv2.LINE_AA, 4)
+    drawn = viz.draw_objects(image, objects, P2, show_labels=False)
+    np.testing.assert_array_equal(drawn, reference)
+
+
+def test_labels_of_nearby_boxes_do_not_overlap(frames):
+    """Labels are placed highest score first; one that would cover another moves below it
+    or is left out, never drawn over it."""
+    sample = next(f for f in frames if f["frame_id"] == "000036")
+    gt = sample["objects"].select(viz.drawable(sample["objects"]))
+    # every box twice, shifted 0.3 m: their labels would land on each other
+    crowd = KittiObjects.concatenate([gt, gt.replace(location=gt.location + [0.3, 0.0, 0.0])])
+    crowd = crowd.replace(score=np.linspace(0.2, 0.95, len(crowd)))
+    texts = [f"{t} {s:.2f}" for t, s in zip(crowd.type, crowd.score, strict=True)]
+    corners = np.repeat(np.array([[100.0, 50.0]]), len(texts), axis=0)
+    spots = viz._label_boxes(texts, corners, (375, 1242), 0.4)
+    placed = [s for s in spots if s is not None]
+    assert len(placed) == 4 and spots[0] == (100, 50, *spots[0][2:])  # the first keeps its place
+    cover = np.zeros((375, 1242), int)
+    for x, y, w, h, _ in placed:
+        cover[y : y + h, x : x + w] += 1
+    assert cover.max() == 1
+    pic = viz.draw_objects(sample["image"], crowd, sample["P2"])
+    assert pic.shape == sample["image"].shape
+
+
+def test_bev_axis_labels_do_not_collide():
+    """The bottom-left corner holds the "0 m" label alone (the x = -30 label sat on it), and
+    a label that would be cut by the picture's edge is left out."""
+    grid = viz.BevGrid(pixels_per_metre=5.3)  # the grid of a 375-row picture
+    h, w = grid.size
+    empty = viz.draw_bev(grid=grid)
+    back, line = (24, 24, 24), (80, 80, 80)
+    alone = np.empty_like(empty)
+    alone[:] = back
+    cv2.line(alone, (0, 0), (0, h - 1), line, 1)  # x = -30 m
+    cv2.line(alone, (0, h - 1), (w - 1, h - 1), line, 1)  # z = 0 m
+    cv2.putText(alone, "0 m", (3, h - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, line, 1, cv2.LINE_AA)
+    (tw, th), _ = cv2.getTextSize("0 m", cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)
+    corner = np.s_[h - 6 - th : h, : 3 + tw + 3]
+    np.testing.assert_array_equal(empty[corner], alone[corner])
+    # z = 70 m (the top edge) has no label; the top rows are plain background or grid lines
+    assert set(map(tuple, empty[:2].reshape(-1, 3))) <= {back, line}

@@ -96,6 +96,7 @@ class Detector3D(StagedModel):
         batch_size: int = 1,
         export_dir: str | os.PathLike | None = None,
         int8: Int8Settings | None = None,
+        requests: int = 1,
     ):
         import time
 
@@ -104,6 +105,7 @@ class Detector3D(StagedModel):
         self._int8 = int8 if precision == "int8" else None
         config = detector.config
         self.runtime, self.precision, self.batch_size = runtime, precision, batch_size
+        self.requests = runtime_args.check_positive_int(requests, "requests")
         self.input_size = (int(config.data.height), int(config.data.width))
         self.min_image_rows = int(config.data.crop_top) + 1  # the test transform crops the top
         self._transform = eval_transform(config)
@@ -134,6 +136,7 @@ class Detector3D(StagedModel):
                     export_dir=export_dir,
                     threads=threads,
                     int8=self._int8,
+                    requests=requests,
                 )
             self._variables = None
         self.load_s = time.perf_counter() - t0
@@ -153,6 +156,7 @@ class Detector3D(StagedModel):
         *,
         export_dir: str | os.PathLike | None = None,
         int8: Int8Settings | None = None,
+        requests: int = 1,
     ) -> Detector3D:
         """The detector of a training workdir (``config.json``, ``anchor_priors.npz``,
         ``checkpoints/``) at checkpoint ``step`` (default: the latest).
@@ -169,6 +173,8 @@ class Detector3D(StagedModel):
           int8: how the int8 network is calibrated and which layers stay float32
             (:class:`~gac_jax.deploy.int8.Int8Settings`, e.g. ``keep_heading=True``;
             default settings if None).
+          requests: network calls in flight at once through :meth:`infer_async` (ONNX
+            Runtime / OpenVINO; OpenVINO compiles its throughput hint with that many streams).
 
         Raises:
           InputError: a missing workdir or step, a config / checkpoint that does not load, an
@@ -192,7 +198,7 @@ class Detector3D(StagedModel):
         except ValueError as e:  # KittiFormatError: a missing step or an unfitting checkpoint
             argument = "step" if step is not None and "no checkpoint step" in str(e) else "workdir"
             raise InputError(argument, str(e)) from None
-        return cls(detector, workdir, **options, int8=int8)
+        return cls(detector, workdir, **options, int8=int8, requests=requests)
 
     @classmethod
     def from_weights(
@@ -208,6 +214,7 @@ class Detector3D(StagedModel):
         workdir: str | os.PathLike | None = None,
         export_dir: str | os.PathLike | None = None,
         int8: Int8Settings | None = None,
+        requests: int = 1,
     ) -> Detector3D:
         """The detector of converted weights (``python -m gac_jax.weights.convert``: ``OUT``
         or ``OUT/checkpoints/<step>``) with ``config`` (a config spec ``file.py[:arg]``, or a
@@ -241,7 +248,7 @@ class Detector3D(StagedModel):
             detector = load_detector(
                 workdir, config, checkpoint=weights, dtype=_dtype(runtime, precision)
             )
-        return cls(detector, workdir, **options, int8=int8)
+        return cls(detector, workdir, **options, int8=int8, requests=requests)
 
     # ------------------------------------------------------------------ description
 
@@ -325,6 +332,27 @@ class Detector3D(StagedModel):
                 out = self._predict(self._variables, images, P2, planes)
                 chunks.append({k: np.asarray(v)[:n] for k, v in out.items()})
         return {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+
+    def infer_async(self, prepared: Sequence[PreparedImage]):
+        """:meth:`infer` started without waiting: returns an object whose ``result()`` waits
+        and gives what :meth:`infer` would (the same values). Up to ``requests`` may be in
+        flight; take their results in the order they were started. For the jax runtime the
+        call is dispatched (XLA runs it while the caller goes on); a list longer than one
+        batch runs at once."""
+        from gac_jax.deploy.runtimes import PendingOutputs
+
+        prepared = checked_prepared(prepared, PreparedImage, "Detector3D.prepare")
+        if len(prepared) > self.batch_size:
+            raw = self.infer(prepared)
+            return PendingOutputs(lambda: raw)
+        ((part, n),) = padded_chunks(prepared, self.batch_size)
+        arrays = [np.stack([getattr(p, k) for p in part]) for k in ("image", "P2", "plane")]
+        with self._lock:
+            if self.runtime == "jax":
+                out = self._predict(self._variables, *arrays)  # dispatched, not waited for
+                return PendingOutputs(lambda: {k: np.asarray(v)[:n] for k, v in out.items()})
+            pending = self._predict.start(self._variables, *arrays)
+        return PendingOutputs(lambda: {k: np.asarray(v)[:n] for k, v in pending.result().items()})
 
     def finish(
         self, raw: dict[str, np.ndarray], prepared: Sequence[PreparedImage]

@@ -44,7 +44,7 @@ def eval_transform(config: ml_collections.ConfigDict, normalize: bool = True) ->
     d = config.data
     ops = plane_ops(d) + [
         transforms.CropTop(d.crop_top),
-        transforms.Resize(d.height),
+        transforms.Resize(d.height, calibration=d.get("resize_calibration", "grid")),
         transforms.CropOrPadWidth(d.width),
     ]
     if normalize:
@@ -61,7 +61,7 @@ def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
     ]
     ops += [
         transforms.CropTop(d.crop_top),
-        transforms.Resize(d.height),
+        transforms.Resize(d.height, calibration=d.get("resize_calibration", "grid")),
         transforms.CropOrPadWidth(d.width),
     ]
     if d.photometric:

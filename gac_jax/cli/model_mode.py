@@ -15,11 +15,9 @@ from __future__ import annotations
 
 import argparse
 import os
-from pathlib import Path
 
 from gac_jax.deploy.int8 import INT8_OPTIONS, add_int8_arguments
-
-XLA_THREAD_NAME = "tf_XLAEigen"
+from gac_jax.streams.thread_budget import xla_threads
 
 
 def add_model_mode_arguments(parser: argparse.ArgumentParser) -> None:
@@ -128,13 +126,4 @@ def limit_cpu_threads(threads: int | None) -> int:
 
 def xla_thread_count() -> int | None:
     """Number of XLA CPU compute threads alive in this process (Linux; None elsewhere)."""
-    tasks = Path("/proc/self/task")
-    if not tasks.is_dir():
-        return None
-    count = 0
-    for task in tasks.iterdir():
-        try:
-            count += (task / "comm").read_text().strip() == XLA_THREAD_NAME
-        except OSError:
-            continue
-    return count
+    return xla_threads()

@@ -6,6 +6,7 @@ detector, written as an annotated video and per-frame results while it runs.
         [--jsonl] [--realtime] [--fps F] [--max-frames N] [--report-every S]
         [--runtime R] [--precision P] [--batch-size B] [--threads T] [--score-threshold S]
         [--track [--poses FILE]]
+        [--no-video] [--video-scale S] [--network-requests N]
 
 A video or camera needs ``--calib FILE`` (KITTI calibration with a ``P2`` line, checked
 against the frame size); a ``--sequence`` in the KITTI tracking layout
@@ -21,12 +22,20 @@ outputs are checked before the model is loaded (:mod:`gac_jax.streams.output_pla
 with an earlier run's results needs ``--overwrite``); a failed write ends the run with one
 line and exit 1, keeping the frames written so far (:mod:`gac_jax.streams.outputs`).
 ``--track``: objects over frames (:mod:`gac_jax.cli.predict_track`).
+
+Throughput: ``--no-video`` writes the results only; ``--video-scale 0.5`` draws and encodes a
+half-size annotated frame; the container sets the encoder (``.mp4``: Motion JPEG frames in a
+fragmented MP4 that stays playable after any stop, :mod:`gac_jax.streams.mp4_fragments`;
+``.avi`` / ``.mkv``: OpenCV's writer, playable after a clean close); ``--network-requests 2``
+keeps two network calls in flight (OpenVINO: two streams sharing the ``--threads``). The
+stream sizes its threads as one budget (:mod:`gac_jax.streams.thread_budget`), printed.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import math
 import os
 import sys
@@ -79,6 +88,30 @@ def add_stream_arguments(parser: argparse.ArgumentParser) -> None:
         "earlier video is replaced when the new one is complete)",
     )
     predict_track.add_tracking_arguments(group)
+    add_throughput_arguments(group)
+
+
+def add_throughput_arguments(group) -> None:
+    """What a stream spends its cores on: the video (none, or smaller) and the network's
+    calls in flight."""
+    group.add_argument(
+        "--no-video", dest="no_images", action="store_true", help="results only (no video)"
+    )
+    group.add_argument(
+        "--video-scale",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="annotated video at S times the input's size (0 < S <= 1; less to draw and encode)",
+    )
+    group.add_argument(
+        "--network-requests",
+        type=int,
+        default=1,
+        metavar="N",
+        help="network calls in flight (openvino/onnxruntime; 2: the next frame's network runs "
+        "while this one is finished)",
+    )
 
 
 def stream_kind(args: argparse.Namespace) -> str | None:
@@ -108,6 +141,14 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
         used = [
             f"--{k.replace('_', '-')}" for k in stream_only if getattr(args, k) not in (None, False)
         ]
+        used += [
+            f"--{k}"
+            for k, v in (
+                ("video-scale", args.video_scale != 1.0),
+                ("network-requests", args.network_requests != 1),
+            )
+            if v
+        ]
         if used:
             parser.error(f"{used[0]} applies to --video/--camera/--sequence/--clip only")
         return
@@ -115,6 +156,8 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
         parser.error(
             "--config: a stream runs the workdir's own config (or --checkpoint + --config)"
         )
+    if args.network_requests > 1 and args.runtime in (None, "jax"):
+        parser.error("--network-requests applies to --runtime openvino/onnxruntime")
     for problem in numeric_problems(args):  # one line, as the other input errors
         print(f"error: {problem}", file=sys.stderr)
         raise SystemExit(2)
@@ -145,6 +188,8 @@ def numeric_problems(args: argparse.Namespace) -> list[str]:
         ),
         ("--step", args.step, lambda v: v >= 0, "must be a checkpoint step >= 0"),
         ("--score-threshold", args.score_threshold, math.isfinite, "must be a finite number"),
+        ("--video-scale", args.video_scale, lambda v: 0 < v <= 1, "must be in (0, 1]"),
+        ("--network-requests", args.network_requests, lambda v: v >= 1, "must be >= 1"),
     ]
     return [
         f"{flag} {problem}, got {value:g}"
@@ -251,6 +296,7 @@ def load_detector(args: argparse.Namespace):
         "batch_size": args.batch_size,
         "export_dir": args.export,
         "int8": getattr(args, "int8", None),
+        "requests": getattr(args, "network_requests", 1),
     }
     if args.checkpoint is not None:
         config = args.config or load_run_config(args.workdir)
@@ -290,6 +336,19 @@ def summary_lines(report, written_to: list[str], detector, threads: int) -> list
     return lines
 
 
+def stream_thread_budget(args: argparse.Namespace):
+    """The stream's :class:`~gac_jax.streams.thread_budget.ThreadBudget` (``--threads``,
+    ``--network-requests``), its OpenCV/BLAS part applied; ``args.threads`` set to the
+    network's threads."""
+    from gac_jax.streams.thread_budget import apply_host_threads, plan_thread_budget
+
+    budget = plan_thread_budget(args.threads, args.network_requests)
+    apply_host_threads(budget)
+    if args.runtime != "jax":
+        args.threads = budget.network_threads
+    return budget
+
+
 def run_stream(args: argparse.Namespace, threads: int) -> int:
     """Runs the stream command; returns the exit code (errors raise, see ``predict.main``):
     0 at the input's end, 1 when writing failed, 128 + N after stop signal N
@@ -310,6 +369,7 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
     import time
 
     from gac_jax.data.io_errors import error_line
+    from gac_jax.evaluation.detection_pictures import detection_picture
     from gac_jax.streams import outputs, sources
     from gac_jax.streams.pipeline import StreamPipeline
 
@@ -321,6 +381,7 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
         outputs.check_video_path(args.out_video)
     source = open_source(args)
     video = results = None
+    budget = stream_thread_budget(args)
     try:
         plan = plan_outputs(args, source)
         poses = predict_track.stream_poses(args, source) if args.track else None
@@ -337,6 +398,7 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
             flush=True,
         )
         print(detector.precision_line(), flush=True)
+        print(budget.describe(detector.runtime), flush=True)
         warmup_s = detector.warmup()
         signals.check()
         print(
@@ -369,6 +431,8 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
             report_every=args.report_every,
             log=lambda line: print(line, flush=True),
             track=track,
+            draw=functools.partial(detection_picture, scale=args.video_scale),
+            network_requests=budget.requests,
         )
         signals.check()
         signals.pipeline = pipeline

@@ -17,6 +17,10 @@ image_transform``), which therefore maps ORIGINAL pixels to current ones.
   with ``sx = W'/W`` (likewise ``v`` with ``sy = H'/H``): exactly the sampling
   grid cv2 uses, so projected labels land on the resized content (the
   reference scales ``P2`` by ``s`` without the half-pixel term, a < 0.2 px shift);
+  ``Resize(calibration='authors')`` instead applies the authors' ``diag(s, s, 1)`` with
+  ``s = H'/H`` to ``P2``, the boxes and ``image_transform`` (the pixels are resampled as
+  before): for KITTI's 375x1242 -> 288x1301 that is fx scaled by 288/275 instead of 1301/1242
+  (0.167 px, 2.2e-4 relative), the P2 their released weights were trained with;
 * crop/pad on the right: identity; crop of ``c`` columns on the left: ``u' = u - c``;
 * horizontal flip of width ``W``: ``u' = W - 1 - u``, and the 3D scene is mirrored
   (``x -> -x``) so ``P2' = F @ P2 @ diag(-1, 1, 1, 1)`` and the ground ``plane``
@@ -54,10 +58,20 @@ def translation(du: float, dv: float) -> np.ndarray:
     return np.array([[1.0, 0.0, du], [0.0, 1.0, dv], [0.0, 0.0, 1.0]])
 
 
+RESIZE_CALIBRATIONS = ("grid", "authors")
+
+
 def resize_affine(src_size: tuple[int, int], dst_size: tuple[int, int]) -> np.ndarray:
     """3x3 affine of ``cv2.resize`` from ``(H, W)`` to ``(H', W')``: ``u' = sx (u + 0.5) - 0.5``."""
     sy, sx = dst_size[0] / src_size[0], dst_size[1] / src_size[1]
     return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+
+
+def authors_resize_affine(src_size: tuple[int, int], dst_size: tuple[int, int]) -> np.ndarray:
+    """The reference's calibration update of a resize: ``diag(s, s, 1)``, ``s = H'/H`` (one
+    scale for both axes, no half-pixel term), whatever the new width."""
+    s = dst_size[0] / src_size[0]
+    return np.diag([s, s, 1.0])
 
 
 def flip_affine(width: int) -> np.ndarray:
@@ -206,12 +220,25 @@ class Resize:
     path uses 11-bit fixed-point weights). A depth map is resampled with
     :func:`warp_depth` (``depth_mode``), which keeps sparse validity and never
     interpolates depth values.
+
+    ``calibration``: ``'grid'`` (default) moves ``P2``, the boxes and ``image_transform`` by
+    the exact sampling grid (:func:`resize_affine`); ``'authors'`` by the reference's
+    :func:`authors_resize_affine` (the convention of the released weights; see the module
+    doc). The pixels (and a depth map) are resampled on the exact grid either way.
     """
 
     height: int
     width: int | None = None
     interpolation: int = cv2.INTER_LINEAR
     depth_mode: str = "scatter"
+    calibration: str = "grid"
+
+    def __post_init__(self):
+        if self.calibration not in RESIZE_CALIBRATIONS:
+            raise ValueError(
+                f"Resize calibration must be one of {', '.join(RESIZE_CALIBRATIONS)}, "
+                f"got {self.calibration!r}"
+            )
 
     def __call__(self, sample: Sample) -> Sample:
         h, w = sample["image"].shape[:2]
@@ -222,6 +249,8 @@ class Resize:
         depth = None
         if "depth" in sample:
             depth = warp_depth(sample["depth"], A, (self.height, new_w), self.depth_mode)
+        if self.calibration == "authors":
+            A = authors_resize_affine((h, w), (self.height, new_w))
         return apply_affine(sample, A, image, depth)
 
 

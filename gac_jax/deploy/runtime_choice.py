@@ -109,6 +109,7 @@ def runtime_predict(
     export_dir: str | os.PathLike | None = None,
     threads: int | None = None,
     int8: Int8Settings | None = None,
+    requests: int = 1,
 ):
     """The exported network of ``detector`` in ``runtime`` as a predict function
     (:class:`~gac_jax.deploy.runtimes.RuntimeDetectionPredict`: the call of
@@ -119,6 +120,7 @@ def runtime_predict(
     and refused when stale or corrupted (:func:`gac_jax.deploy.export.sources.ensure_export`);
     for ``int8`` the quantized network beside it is built when missing or stale
     (:func:`gac_jax.deploy.int8.ensure_int8` with ``int8``, default settings if None).
+    ``requests``: network calls in flight at once (:class:`~gac_jax.deploy.runtimes.OnnxNetwork`).
     """
     from gac_jax.deploy.export.sources import detector_source
     from gac_jax.deploy.runtimes import DETECTOR_OUTPUTS, OnnxNetwork, RuntimeDetectionPredict
@@ -145,6 +147,7 @@ def runtime_predict(
         image_size=size,
         threads=threads,
         batch_size=batch_size,
+        requests=requests,
     )
     predict = RuntimeDetectionPredict(
         network,

@@ -167,9 +167,15 @@ class OnnxNetwork:
       image_size: (H, W) the caller feeds (checked against the model's input).
       threads: CPU threads (default: every usable core).
       batch_size: fixes the batch dimension (OpenVINO compiles a static shape), or None.
+      requests: network calls that may be in flight at once (:meth:`start`). OpenVINO: 1
+        compiles for latency (one stream using every thread); more compile its throughput
+        hint with that many streams sharing ``threads`` and as many infer requests, so one
+        call runs while the caller finishes the previous one. ONNX Runtime runs a started
+        call on a worker thread.
 
     ``__call__(images (B,H,W,3) float32, P2 (B,3,4) float32, plane (B,4) float32)`` returns
-    ``{name: ndarray}``.
+    ``{name: ndarray}``; ``start(...)`` the same inputs returns a :class:`PendingOutputs`
+    whose ``result()`` is that dictionary (the same values).
 
     Raises:
       KittiFormatError: the file cannot be loaded, or its inputs/outputs do not fit, naming it.
@@ -185,8 +191,12 @@ class OnnxNetwork:
         image_size: tuple[int, int],
         threads: int | None = None,
         batch_size: int | None = None,
+        requests: int = 1,
     ):
         self.path = Path(path)
+        self.requests = int(requests)
+        if self.requests < 1:
+            raise ValueError(f"requests must be >= 1, got {requests}")
         self.runtime = runtime
         self.precision = precision
         self.outputs = tuple(outputs)
@@ -269,11 +279,15 @@ class OnnxNetwork:
         config = {
             # int8: the quantized ops run in int8, the rest in float32 (not the CPU's bf16 default)
             "INFERENCE_PRECISION_HINT": "bf16" if precision == "bf16" else "f32",
-            "PERFORMANCE_HINT": "LATENCY",
+            "PERFORMANCE_HINT": "LATENCY" if self.requests == 1 else "THROUGHPUT",
             "INFERENCE_NUM_THREADS": str(threads),
         }
+        if self.requests > 1:  # one stream per request in flight, the threads shared out
+            config["NUM_STREAMS"] = str(min(self.requests, threads))
         self._compiled = core.compile_model(model, "CPU", config)
-        self._request = self._compiled.create_infer_request()
+        self._infer_requests = [self._compiled.create_infer_request() for _ in range(self.requests)]
+        self._request = self._infer_requests[0]
+        self._next_request = 0
         hint = self._compiled.get_property("INFERENCE_PRECISION_HINT")
         self.precision_in_effect = hint.get_type_name() if hasattr(hint, "get_type_name") else hint
         # an output tensor may carry several names (OpenVINO merges the Identity ops)
@@ -283,20 +297,65 @@ class OnnxNetwork:
                 self._ports[name] = port
         return shapes, list(self._ports)
 
+    def compiled_property(self, name: str):
+        """A property of the compiled OpenVINO model (e.g. ``INFERENCE_NUM_THREADS``,
+        ``NUM_STREAMS``, ``PERF_COUNT``); None for ONNX Runtime."""
+        if self.runtime != "openvino":
+            return None
+        return self._compiled.get_property(name)
+
     def __call__(
         self, images: np.ndarray, P2: np.ndarray, plane: np.ndarray
     ) -> dict[str, np.ndarray]:
-        feed = {
-            "images": np.ascontiguousarray(images, np.float32),
-            "P2": np.ascontiguousarray(P2, np.float32),
-            "plane": np.ascontiguousarray(plane, np.float32),
-        }
+        feed = _feed(images, P2, plane)
         if self.runtime == "onnxruntime":
             values = self._session.run(list(self.outputs), feed)
             return dict(zip(self.outputs, values, strict=True))
         result = self._request.infer(feed)
         # copy out of the request's buffers
         return {name: np.array(result[self._ports[name]]) for name in self.outputs}
+
+    def start(self, images: np.ndarray, P2: np.ndarray, plane: np.ndarray) -> PendingOutputs:
+        """Starts one call without waiting for it (at most ``requests`` in flight: the caller
+        takes each :meth:`PendingOutputs.result` before starting more; OpenVINO reuses its
+        infer requests in turn)."""
+        feed = _feed(images, P2, plane)
+        if self.runtime == "onnxruntime":
+            if not hasattr(self, "_pool"):
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._pool = ThreadPoolExecutor(self.requests, thread_name_prefix="gac-ort")
+            future = self._pool.submit(self._session.run, list(self.outputs), feed)
+            return PendingOutputs(lambda: dict(zip(self.outputs, future.result(), strict=True)))
+        request = self._infer_requests[self._next_request]
+        self._next_request = (self._next_request + 1) % len(self._infer_requests)
+        request.start_async(feed)
+
+        def result() -> dict[str, np.ndarray]:
+            request.wait()
+            return {
+                name: np.array(request.get_tensor(self._ports[name]).data) for name in self.outputs
+            }
+
+        return PendingOutputs(result)
+
+
+def _feed(images, P2, plane) -> dict[str, np.ndarray]:
+    return {
+        "images": np.ascontiguousarray(images, np.float32),
+        "P2": np.ascontiguousarray(P2, np.float32),
+        "plane": np.ascontiguousarray(plane, np.float32),
+    }
+
+
+class PendingOutputs:
+    """A started network call: :meth:`result` waits for it and returns its value (once)."""
+
+    def __init__(self, wait):
+        self._wait = wait
+
+    def result(self):
+        return self._wait()
 
 
 class RuntimeDetectionPredict:
@@ -357,6 +416,14 @@ class RuntimeDetectionPredict:
         del variables
         plane = self._planes(plane, len(images))
         return self._select(self.network(images, P2, plane), np.asarray(P2, np.float32), plane)
+
+    def start(self, variables, images, P2, plane=None) -> PendingOutputs:
+        """:meth:`__call__` started (:meth:`OnnxNetwork.start`); its ``result()`` decodes."""
+        del variables
+        plane = self._planes(plane, len(images))
+        pending = self.network.start(images, P2, plane)
+        P2 = np.asarray(P2, np.float32)
+        return PendingOutputs(lambda: self._select(pending.result(), P2, plane))
 
 
 class RuntimeDepthPredictor:

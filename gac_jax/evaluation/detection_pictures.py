@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gac_jax.data import transforms
 from gac_jax.data.kitti import KittiObjects, read_label
 from gac_jax.evaluation import viz
 
@@ -38,21 +39,44 @@ def detection_picture(
     P2: np.ndarray,
     predictions: KittiObjects | None,
     ground_truth: KittiObjects | None = None,
+    *,
+    scale: float = 1.0,
 ) -> np.ndarray:
-    """Camera view | bird's-eye view, side by side.
+    """Camera view | bird's-eye view, side by side, drawn into one new picture.
 
     Args:
       image: (H, W, 3) uint8 RGB original image; P2: (3, 4) its projection.
       predictions, ground_truth: objects in this image's camera frame and pixels.
+      scale: size of the picture relative to the image (< 1: the image is shrunk first and
+        the boxes drawn on the small one: less to draw and to encode).
 
     Returns:
-      (H, W + Wb, 3) uint8 RGB, ``Wb`` the width of a bird's-eye view ``H`` pixels tall.
+      (h, w + Wb, 3) uint8 RGB with ``(h, w) = round(scale (H, W))``, ``Wb`` the width of a
+      bird's-eye view ``h`` pixels tall.
     """
-    camera = viz.draw_detections(image, P2, predictions, ground_truth)
-    bev = viz.draw_bev(predictions, ground_truth, bev_grid_for_height(image.shape[0]))
-    if bev.shape[0] != camera.shape[0]:  # rounding of the grid size
-        bev = cv2.resize(bev, (bev.shape[1], camera.shape[0]), interpolation=cv2.INTER_AREA)
-    return np.concatenate([camera, bev], axis=1)
+    image = viz._check_image(image)
+    h, w = image.shape[:2]
+    if scale != 1.0:
+        size = (max(round(h * scale), 2), max(round(w * scale), 2))
+        A = transforms.resize_affine((h, w), size)
+        image = cv2.resize(image, size[::-1], interpolation=cv2.INTER_AREA)
+        P2 = A @ np.asarray(P2, np.float64)
+        predictions, ground_truth = (
+            None if o is None else o.replace(bbox=transforms.transform_boxes(o.bbox, A))
+            for o in (predictions, ground_truth)
+        )
+        h, w = size
+    grid = bev_grid_for_height(h)
+    if grid.size[0] != h:  # rounding of the grid size: drawn apart and resized
+        camera = viz.draw_detections(image, P2, predictions, ground_truth)
+        bev = viz.draw_bev(predictions, ground_truth, grid=grid)
+        bev = cv2.resize(bev, (bev.shape[1], h), interpolation=cv2.INTER_AREA)
+        return np.concatenate([camera, bev], axis=1)
+    out = np.empty((h, w + grid.size[1], 3), np.uint8)
+    out[:, :w] = image
+    viz.draw_detections_into(out[:, :w], P2, predictions, ground_truth)
+    viz.draw_bev_into(out[:, w:], predictions, ground_truth, grid)
+    return out
 
 
 def _source_index(source) -> dict[str, int]:

@@ -135,29 +135,86 @@ def _fixed(point: np.ndarray) -> tuple[int, int]:
     return (int(round(point[0] * (1 << _SHIFT))), int(round(point[1] * (1 << _SHIFT))))
 
 
-def _draw_segments(canvas, segments, valid, color, thickness):
-    for (p, q), ok in zip(segments.reshape(-1, 2, 2), valid.reshape(-1), strict=True):
-        if ok:
-            cv2.line(canvas, _fixed(p), _fixed(q), color, thickness, cv2.LINE_AA, _SHIFT)
+def _fixed_points(points: np.ndarray) -> np.ndarray:
+    """(..., 2) float pixels -> int32 fixed point of :data:`_SHIFT` bits (as :func:`_fixed`:
+    round half to even)."""
+    return np.round(np.asarray(points, np.float64) * (1 << _SHIFT)).astype(np.int32)
 
 
-def _draw_label(canvas, text, box, color, scale=0.4):
-    """Text on a filled strip inside the top-left corner of ``box`` (kept within the image)."""
-    height, width = canvas.shape[:2]
-    (tw, th), base = cv2.getTextSize(text, _FONT, scale, 1)
-    x = int(np.clip(math.floor(box[0]), 0, max(width - tw - 2, 0)))
-    y = int(np.clip(math.floor(box[1]), 0, max(height - th - base - 2, 0)))
-    cv2.rectangle(canvas, (x, y), (x + tw + 1, y + th + base + 1), color, cv2.FILLED)
+def _colour_runs(colors: Sequence[Color]) -> list[tuple[Color, int, int]]:
+    """``(colour, start, stop)`` of consecutive items of one colour: one OpenCV call each,
+    drawn in the items' order."""
+    runs: list[tuple[Color, int, int]] = []
+    for i, c in enumerate(colors):
+        if runs and runs[-1][0] == c:
+            runs[-1] = (c, runs[-1][1], i + 1)
+        else:
+            runs.append((c, i, i + 1))
+    return runs
+
+
+def _polylines(canvas, points: np.ndarray, closed: bool, color, thickness) -> None:
+    """All (M, K, 2) float polylines in one ``cv2.polylines`` call (anti-aliased, sub-pixel):
+    the same pixels as ``cv2.line`` / ``cv2.rectangle`` one by one in that order."""
+    if len(points):
+        pts = list(_fixed_points(points))
+        cv2.polylines(canvas, pts, closed, color, thickness, cv2.LINE_AA, _SHIFT)
+
+
+def _label_boxes(
+    texts: Sequence[str], corners: np.ndarray, image_size: tuple[int, int], scale: float
+) -> list[tuple[int, int, int, int, int] | None]:
+    """Where each label goes: ``(x, y, w, h, baseline)`` inside the top-left corner of its box
+    (kept within the image), or None when it cannot be placed without covering another.
+
+    Labels are placed in the given order (callers pass the highest score first); one that
+    would overlap a placed label moves down below it, up to a few times, and is dropped when
+    it still overlaps (so nearby boxes keep readable labels)."""
+    height, width = image_size
+    taken = np.zeros((height, width), bool)  # pixels under a placed label
+    out: list[tuple[int, int, int, int, int] | None] = []
+    for text, corner in zip(texts, corners, strict=True):
+        (tw, th), base = cv2.getTextSize(text, _FONT, scale, 1)
+        w, h = tw + 2, th + base + 2  # the filled strip, both ends inclusive
+        x = min(max(math.floor(corner[0]), 0), max(width - w, 0))
+        y = min(max(math.floor(corner[1]), 0), max(height - h, 0))
+        spot = None
+        for _ in range(4):
+            rows = np.flatnonzero(taken[y : y + h, x : x + w].any(axis=1))
+            if not len(rows):
+                spot = (x, y, w, h, base)
+                taken[y : y + h, x : x + w] = True
+                break
+            y += int(rows[-1]) + 1  # just below the label in the way
+            if y + h > height:
+                break
+        out.append(spot)
+    return out
+
+
+def _draw_label(canvas, text, spot, color, scale=0.4):
+    """Text on a filled strip at ``spot`` (:func:`_label_boxes`)."""
+    x, y, w, h, _ = spot
+    cv2.rectangle(canvas, (x, y), (x + w - 1, y + h - 1), color, cv2.FILLED)
     luma = 0.299 * color[0] + 0.587 * color[1] + 0.114 * color[2]
     ink = (0, 0, 0) if luma > 128 else (255, 255, 255)
+    th = h - 2 - spot[4]
     cv2.putText(canvas, text, (x + 1, y + th + 1), _FONT, scale, ink, 1, cv2.LINE_AA)
 
 
 # --------------------------------------------------------------------------- camera view
 
 
-def draw_objects(
-    image: np.ndarray,
+def draw_objects(image: np.ndarray, objects: KittiObjects, P2: np.ndarray, **options) -> np.ndarray:
+    """Draws objects on a copy of ``image`` ((H, W, 3) uint8 RGB; ``options`` as
+    :func:`draw_objects_into`); returns the (H, W, 3) uint8 RGB picture."""
+    canvas = _check_image(image).copy()
+    draw_objects_into(canvas, objects, P2, **options)
+    return canvas
+
+
+def draw_objects_into(
+    canvas: np.ndarray,
     objects: KittiObjects,
     P2: np.ndarray,
     *,
@@ -167,11 +224,14 @@ def draw_objects(
     draw_2d: bool = False,
     show_labels: bool = True,
     near: float = 0.1,
-) -> np.ndarray:
-    """Draws objects on a copy of ``image``.
+) -> None:
+    """Draws objects on ``canvas`` itself ((H, W, 3) uint8 RGB; a view into a larger picture
+    is fine): all wireframes in one ``cv2.polylines`` call per run of one colour, then the 2D
+    boxes likewise, then the labels (highest score placed first, none covering another:
+    :func:`_label_boxes`).
 
     Args:
-      image: (H, W, 3) uint8 RGB; P2: (3, 4) projection of this image.
+      canvas: the picture; P2: (3, 4) projection of this image.
       objects: boxes in this image's camera frame; ``bbox`` in its pixels.
       color: one colour for all, or None for :func:`class_color` per class.
       draw_3d: projected wireframes with the front-face cross (DontCare and
@@ -179,14 +239,10 @@ def draw_objects(
       draw_2d: the ``bbox`` rectangles (thin).
       show_labels: "type score" (score when finite) inside the top-left corner
         of the object's 2D extent (projected 3D box, or ``bbox`` without 3D).
-
-    Returns:
-      (H, W, 3) uint8 RGB.
     """
-    canvas = _check_image(image).copy()
     size = canvas.shape[:2]
-    keep = objects.type != "DontCare"
-    objects = objects.select(keep)
+    objects = objects.select(objects.type != "DontCare")
+    colors = [color if color is not None else class_color(t) for t in objects.type]
     has_3d = drawable(objects)
     drawn_3d = np.zeros(len(objects), bool)
     extent = objects.bbox.copy()
@@ -197,27 +253,50 @@ def draw_objects(
         )
         clipped, visible = clip_segments(segments, size)
         visible &= valid
-        for k, i in enumerate(idx):
-            c = color if color is not None else class_color(objects.type[i])
-            _draw_segments(canvas, clipped[k], visible[k], c, thickness)
-            if visible[k].any():
-                pts = clipped[k][visible[k]].reshape(-1, 2)
-                extent[i] = [*pts.min(axis=0), *pts.max(axis=0)]
-                drawn_3d[i] = True
-    for i in range(len(objects)):
-        c = color if color is not None else class_color(objects.type[i])
-        box = objects.bbox[i]
-        if draw_2d and np.all(np.isfinite(box)) and box[2] > box[0] and box[3] > box[1]:
-            cv2.rectangle(canvas, _fixed(box[:2]), _fixed(box[2:]), c, 1, cv2.LINE_AA, _SHIFT)
-        if show_labels and (drawn_3d[i] or draw_2d):
-            score = objects.score[i]
-            text = str(objects.type[i]) + (f" {score:.2f}" if np.isfinite(score) else "")
-            _draw_label(canvas, text, extent[i], c)
+        for c, start, stop in _colour_runs([colors[i] for i in idx]):
+            _polylines(canvas, clipped[start:stop][visible[start:stop]], False, c, thickness)
+        shown = visible.any(axis=1)
+        lo = np.where(visible[..., None, None], clipped, np.inf).min(axis=(1, 2))
+        hi = np.where(visible[..., None, None], clipped, -np.inf).max(axis=(1, 2))
+        extent[idx[shown]] = np.concatenate([lo, hi], axis=1)[shown]
+        drawn_3d[idx[shown]] = True
+    if draw_2d:
+        box = objects.bbox
+        ok = np.all(np.isfinite(box), axis=1) & (box[:, 2] > box[:, 0]) & (box[:, 3] > box[:, 1])
+        x1, y1, x2, y2 = box.T
+        rects = np.stack(
+            [np.stack(p, axis=-1) for p in ((x1, y1), (x2, y1), (x2, y2), (x1, y2))], 1
+        )
+        for c, start, stop in _colour_runs(colors):
+            _polylines(canvas, rects[start:stop][ok[start:stop]], True, c, 1)
+    if not show_labels:
+        return
+    labelled = np.flatnonzero(drawn_3d | draw_2d)
+    score = objects.score[labelled]
+    order = labelled[np.argsort(-np.where(np.isfinite(score), score, -np.inf), kind="stable")]
+    texts = {
+        i: str(objects.type[i])
+        + (f" {objects.score[i]:.2f}" if np.isfinite(objects.score[i]) else "")
+        for i in order
+    }
+    spots = dict(
+        zip(order, _label_boxes([texts[i] for i in order], extent[order], size, 0.4), strict=True)
+    )
+    for i in labelled:  # in the objects' order, as before
+        if spots[i] is not None:
+            _draw_label(canvas, texts[i], spots[i], colors[i])
+
+
+def draw_detections(image: np.ndarray, P2: np.ndarray, *objects, **options) -> np.ndarray:
+    """:func:`draw_detections_into` on a copy of ``image`` ((H, W, 3) uint8 RGB);
+    ``objects``: ``predictions[, ground_truth]``."""
+    canvas = _check_image(image).copy()
+    draw_detections_into(canvas, P2, *objects, **options)
     return canvas
 
 
-def draw_detections(
-    image: np.ndarray,
+def draw_detections_into(
+    canvas: np.ndarray,
     P2: np.ndarray,
     predictions: KittiObjects | None = None,
     ground_truth: KittiObjects | None = None,
@@ -225,24 +304,23 @@ def draw_detections(
     draw_2d: bool = True,
     show_labels: bool = True,
     thickness: int = 2,
-) -> np.ndarray:
-    """Ground truth (thin, :data:`GT_COLOR`) under predictions (class colours, with scores).
+) -> None:
+    """Ground truth (thin, :data:`GT_COLOR`) under predictions (class colours, with scores),
+    on ``canvas`` itself ((H, W, 3) uint8 RGB, may be a view).
 
     Args:
-      image: (H, W, 3) uint8 RGB; P2: (3, 4) its projection.
+      P2: (3, 4) projection of the picture.
       predictions, ground_truth: :class:`KittiObjects` in this image's frame, or None.
     """
-    canvas = _check_image(image)
     if ground_truth is not None:
         thin = max(thickness - 1, 1)
-        canvas = draw_objects(
+        draw_objects_into(
             canvas, ground_truth, P2, color=GT_COLOR, thickness=thin, show_labels=False
         )
     if predictions is not None:
-        canvas = draw_objects(
+        draw_objects_into(
             canvas, predictions, P2, thickness=thickness, draw_2d=draw_2d, show_labels=show_labels
         )
-    return canvas.copy() if canvas is image else canvas
 
 
 # --------------------------------------------------------------------------- bird's-eye view
@@ -277,12 +355,6 @@ class BevGrid:
         return np.stack([u, v], axis=-1)
 
 
-def _bev_background(grid: BevGrid, background: Color, line: Color) -> np.ndarray:
-    """A fresh copy of the grid picture (drawn once per grid and colours: a video's frames
-    share it)."""
-    return _bev_background_cached(grid, tuple(background), tuple(line)).copy()
-
-
 @functools.lru_cache(maxsize=8)
 def _bev_background_cached(grid: BevGrid, background: Color, line: Color) -> np.ndarray:
     h, w = grid.size
@@ -292,12 +364,17 @@ def _bev_background_cached(grid: BevGrid, background: Color, line: Color) -> np.
     for x in np.arange(math.ceil(grid.x_range[0] / step) * step, grid.x_range[1] + 1e-9, step):
         u = grid.to_pixels(x, grid.z_range[0])[0]
         cv2.line(canvas, (round(u), 0), (round(u), h - 1), line, 1)
-        if x != 0:
+        (tw, _), _ = cv2.getTextSize(f"{x:g}", _FONT, 0.35, 1)
+        # x along the bottom row, except at the camera and where the text would leave the
+        # picture or sit on the z labels' column (the left edge: "0 m" is there)
+        if x != 0 and u > 0 and round(u) + 3 + tw < w:
             cv2.putText(canvas, f"{x:g}", (round(u) + 3, h - 4), _FONT, 0.35, line, 1, cv2.LINE_AA)
     for z in np.arange(math.ceil(grid.z_range[0] / step) * step, grid.z_range[1] + 1e-9, step):
         v = grid.to_pixels(grid.x_range[0], z)[1]
         cv2.line(canvas, (0, round(v)), (w - 1, round(v)), line, 1)
-        cv2.putText(canvas, f"{z:g} m", (3, round(v) - 3), _FONT, 0.35, line, 1, cv2.LINE_AA)
+        (_, th), _ = cv2.getTextSize(f"{z:g} m", _FONT, 0.35, 1)
+        if round(v) - 3 - th >= 0:  # a label that fits under the top edge
+            cv2.putText(canvas, f"{z:g} m", (3, round(v) - 3), _FONT, 0.35, line, 1, cv2.LINE_AA)
     # Camera at the origin: a small triangle pointing forward (+z, up the picture).
     o = grid.to_pixels(0.0, 0.0)
     tri = np.array([o + [-6, 0], o + [6, 0], o + [0, -10]])
@@ -309,6 +386,7 @@ def _bev_background_cached(grid: BevGrid, background: Color, line: Color) -> np.
 
 
 def _bev_boxes(canvas, grid, objects, color, thickness):
+    """Footprints (one ``cv2.polylines`` per run of one colour) and their heading marks."""
     objects = objects.select(drawable(objects))
     if not len(objects):
         return
@@ -316,14 +394,30 @@ def _bev_boxes(canvas, grid, objects, color, thickness):
     footprint = grid.to_pixels(corners[:, :4, 0], corners[:, :4, 2])  # (N, 4, 2)
     centre = footprint.mean(axis=1)
     front = footprint[:, :2].mean(axis=1)  # corners 0, 1: the front (+x) edge
-    for i in range(len(objects)):
-        c = color if color is not None else class_color(objects.type[i])
-        poly = np.round(footprint[i] * (1 << _SHIFT)).astype(np.int32)
-        cv2.polylines(canvas, [poly], True, c, thickness, cv2.LINE_AA, _SHIFT)
-        cv2.line(canvas, _fixed(centre[i]), _fixed(front[i]), c, thickness, cv2.LINE_AA, _SHIFT)
+    heading = np.stack([centre, front], axis=1)  # (N, 2, 2)
+    colors = [color if color is not None else class_color(t) for t in objects.type]
+    for c, start, stop in _colour_runs(colors):
+        _polylines(canvas, footprint[start:stop], True, c, thickness)
+        _polylines(canvas, heading[start:stop], False, c, thickness)
 
 
-def draw_bev(
+def draw_bev(*objects, grid: BevGrid | None = None, **options) -> np.ndarray:
+    """Bird's-eye view: footprints (bottom faces) with heading marks; GT under predictions.
+
+    ``objects``: ``predictions[, ground_truth]``; ``options`` as :func:`draw_bev_into`.
+    Returns an (H, W, 3) uint8 RGB picture of ``grid.size`` (default 701 x 601
+    for x in [-30, 30] m, z in [0, 70] m at 10 px/m). Ground truth is drawn in
+    :data:`GT_COLOR`, predictions in their class colours; the heading mark
+    runs from the footprint's centre to the middle of its front edge.
+    """
+    grid = grid or BevGrid()
+    canvas = np.empty((*grid.size, 3), np.uint8)
+    draw_bev_into(canvas, *objects, grid=grid, **options)
+    return canvas
+
+
+def draw_bev_into(
+    canvas: np.ndarray,
     predictions: KittiObjects | None = None,
     ground_truth: KittiObjects | None = None,
     grid: BevGrid | None = None,
@@ -331,21 +425,15 @@ def draw_bev(
     thickness: int = 2,
     background: Color = (24, 24, 24),
     grid_color: Color = (80, 80, 80),
-) -> np.ndarray:
-    """Bird's-eye view: footprints (bottom faces) with heading marks; GT under predictions.
-
-    Returns an (H, W, 3) uint8 RGB picture of ``grid.size`` (default 701 x 601
-    for x in [-30, 30] m, z in [0, 70] m at 10 px/m). Ground truth is drawn in
-    :data:`GT_COLOR`, predictions in their class colours; the heading mark
-    runs from the footprint's centre to the middle of its front edge.
-    """
+) -> None:
+    """:func:`draw_bev` into ``canvas`` ((H, W, 3) uint8 of ``grid.size``, may be a view):
+    the grid picture copied in, then the boxes."""
     grid = grid or BevGrid()
-    canvas = _bev_background(grid, background, grid_color)
+    canvas[:] = _bev_background_cached(grid, tuple(background), tuple(grid_color))
     if ground_truth is not None:
         _bev_boxes(canvas, grid, ground_truth, GT_COLOR, thickness)
     if predictions is not None:
         _bev_boxes(canvas, grid, predictions, None, thickness)
-    return canvas
 
 
 # --------------------------------------------------------------------------- layout

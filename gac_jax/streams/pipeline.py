@@ -121,6 +121,9 @@ class StreamPipeline:
       log: where progress and notes go (one line each).
       track: a tracking stage (:class:`gac_jax.streams.tracking.TrackingStage`) or None: each
         frame's detections become tracks (in frame order) before drawing and writing.
+      network_requests: network calls in flight at once (> 1:
+        :class:`~gac_jax.streams.async_network.AsyncNetworkStage`; the detector needs
+        ``infer_async``).
     """
 
     def __init__(
@@ -138,6 +141,7 @@ class StreamPipeline:
         log: Callable[[str], None] = print,
         draw: Callable = detection_picture,
         track=None,
+        network_requests: int = 1,
     ):
         self.source, self.detector = source, detector
         self.video, self.results = video, results
@@ -146,6 +150,7 @@ class StreamPipeline:
         self.report_every, self.log, self.draw = report_every, log, draw
         self.track = track
         self.rates = StreamRates()
+        self.network_requests = network_requests
         self._read_q = LatestSlot() if realtime else queue.Queue(queue_size)
         # live: the network takes the newest prepared frame too (an older one is dropped)
         self._prepared_q = LatestSlot() if realtime else queue.Queue(max(queue_size, batch_size))
@@ -369,6 +374,13 @@ class StreamPipeline:
             line += f", {self.dropped_live} dropped"
         return line
 
+    def _network_stage(self) -> Callable[[], None]:
+        if self.network_requests == 1:
+            return self._network
+        from gac_jax.streams.async_network import AsyncNetworkStage
+
+        return AsyncNetworkStage(self, self.network_requests, END, NETWORK).run
+
     def run(self) -> StreamReport:
         """Runs the stream to its end (or :meth:`stop` / :meth:`abort`); returns the report.
         The outputs are not closed here."""
@@ -379,7 +391,7 @@ class StreamPipeline:
                 self._stage,
                 (PREPARE, self._read_q.get, self._prepared_q.put, self._prepare),
             ),
-            ("network", self._network, ()),
+            ("network", self._network_stage(), ()),
             ("finish", self._stage, (FINISH, self._raw_q.get, self._drawn_q.put, self._finish)),
             ("write", self._write, ()),
         ]
