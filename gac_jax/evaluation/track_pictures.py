@@ -115,7 +115,7 @@ def track_picture(image: np.ndarray, P2: np.ndarray, tracks) -> np.ndarray:
     camera = viz.draw_detections(image, P2, objects, show_labels=False)
     draw_tracks_camera(camera, tracks, P2)
     grid = bev_grid_for_height(image.shape[0])
-    bev = viz.draw_bev(objects, None, grid)
+    bev = viz.draw_bev(objects, grid=grid)
     scale = 1.0
     if bev.shape[0] != camera.shape[0]:  # rounding of the grid size
         scale = camera.shape[0] / bev.shape[0]
