@@ -50,6 +50,7 @@ from gac_jax.tracking.poses import to_world  # noqa: E402
 
 MIN_IOU = 0.5
 EVALUATOR_FIGURES = ("HOTA", "DetA", "AssA", "LocA", "MOTA", "MOTP", "IDF1", "IDSW", "Frag")
+PERCENT_FIGURES = ("HOTA", "DetA", "AssA", "LocA", "MOTA", "MOTP", "IDF1")
 
 
 def generate_clips(args, root: Path) -> None:
@@ -148,8 +149,8 @@ def run_trackers(args, layout, detections: Path, out: Path, params) -> dict:
     summary = {}
     for method in args.methods:
         for seq in layout.sequences():
-            result = out / "results" / method / f"{seq}.txt"
-            metric = out / "metrics" / method / f"{seq}.json"
+            result = out / "results" / (method + args.tag) / f"{seq}.txt"
+            metric = out / "metrics" / (method + args.tag) / f"{seq}.json"
             if result.is_file() and metric.is_file():
                 continue
             lines, metrics = track_sequence(method, params, layout, seq, detections)
@@ -158,7 +159,7 @@ def run_trackers(args, layout, detections: Path, out: Path, params) -> dict:
             with atomic_write(metric) as f:
                 json.dump(metrics, f)
         per_seq = [
-            json.loads((out / "metrics" / method / f"{s}.json").read_text())
+            json.loads((out / "metrics" / (method + args.tag) / f"{s}.json").read_text())
             for s in layout.sequences()
         ]
         pooled = {k: sum((m[k] for m in per_seq), []) for k in ("depth_errors", "bev_errors")}
@@ -195,13 +196,14 @@ def run_evaluator(label_dir: Path, result_dir: Path, json_path: Path) -> dict | 
 
 
 def evaluator_figure(report: dict | None, cls: str, name: str):
-    """``name`` of class ``cls`` in the evaluator's JSON (``{cls: {name: v}}`` or
-    ``{'classes': {cls: {name: v}}}``), else None."""
+    """``name`` of class ``cls`` in the evaluator's JSON (``{'car': {name: v}}``), in percent
+    for the ratios, else None."""
     if not report:
         return None
-    for node in (report.get("classes", {}).get(cls), report.get(cls)):
+    for node in (report.get(cls), report.get(cls.lower())):
         if isinstance(node, dict) and name in node:
-            return node[name]
+            value = node[name]  # fractions in the JSON, percent in the table (as KITTI prints)
+            return 100 * value if name in PERCENT_FIGURES and value is not None else value
     return None
 
 
@@ -216,7 +218,7 @@ def markdown_table(summary: dict, evaluation: dict, cls: str) -> str:
             "ID sw / 100 frames"]  # fmt: skip
     rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for method, s in summary.items():
-        figures = [
+        figures = [  # evaluation and summary share the methods' keys
             _cell(evaluator_figure(evaluation.get(method), cls, k)) for k in EVALUATOR_FIGURES
         ]
         ours = [s["depth_error_median_m"], s["bev_error_median_m"], s["velocity_error_median_mps"],
@@ -238,6 +240,14 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=None, help="clip generation processes")
     p.add_argument("--class", dest="cls", default="Car", help="class of the table")
     p.add_argument("--skip-evaluator", action="store_true", help="no evaluate.py --task track")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a tracker parameter instead of the workdir config's (track.KEY; repeatable)",
+    )
+    p.add_argument("--tag", default="", help="suffix of the methods' result folders (--set)")
     args = p.parse_args(argv)
     args.methods = args.methods.split(",")
     unknown = sorted(set(args.methods) - set(METHODS))
@@ -255,15 +265,19 @@ def main(argv=None) -> int:
     run_detector(args, layout, detections)
     from gac_jax.trained.run_config import load_run_config
 
-    params = TrackerParams.from_config(load_run_config(args.workdir))
+    overrides = dict(item.split("=", 1) for item in args.set)
+    params = TrackerParams.from_config(
+        load_run_config(args.workdir),
+        **{k: int(v) if v.lstrip("-").isdigit() else float(v) for k, v in overrides.items()},
+    )
     summary = run_trackers(args, layout, detections, out, params)
     evaluation = {}
     if not args.skip_evaluator:
         for method in args.methods:
             evaluation[method] = run_evaluator(
                 clips / "training" / "label_02",
-                out / "results" / method,
-                out / "evaluation" / f"{method}.json",
+                out / "results" / (method + args.tag),
+                out / "evaluation" / f"{method}{args.tag}.json",
             )
     table = markdown_table(summary, evaluation, args.cls)
     print(table)

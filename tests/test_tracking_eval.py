@@ -15,7 +15,11 @@ import pytest
 
 from gac_jax.cli import evaluate as cli
 from gac_jax.data.kitti_tracking import format_poses
-from gac_jax.evaluation.tracking.evaluator import evaluate_tracking, load_tracking_folders
+from gac_jax.evaluation.tracking.evaluator import (
+    evaluate_tracking,
+    format_tracking_table,
+    load_tracking_folders,
+)
 from gac_jax.evaluation.tracking.mot3d import mot3d_metrics, row_velocities, smota
 from gac_jax.evaluation.tracking.tracking_files import read_tracking_file
 from tests import tracking_cases
@@ -149,6 +153,10 @@ def test_velocity_error_by_hand(tmp_path):
     # without poses: relative velocities (5 and 7 m/s), the same 2 m/s error
     vel = evaluate_tracking(load_tracking_folders(labels, results), ("car",))["car"]["velocity"]
     assert vel["frame"] == "camera" and vel["mean"] == pytest.approx(2.0)
+    # a class with 3D boxes but no matched pair with a velocity prints '-' (no mean / median)
+    both = evaluate_tracking(seqs, ("car", "pedestrian"))
+    both["pedestrian"]["velocity"] = {"frame": "world", "pairs": 0, "mean": None, "median": None}
+    assert "Pedestrian   world       0         -       -" in format_tracking_table(both)
 
 
 def _run(argv, capsys):

@@ -209,9 +209,10 @@ def format_tracking_table(result: dict) -> str:
     if vel:
         lines.append("")
         lines.append(f"{'velocity':<11}{'frame':>7}{'pairs':>8}{'mean m/s':>10}{'median':>8}")
-        for cls, v in vel:
-            lines.append(
-                f"{cls.capitalize():<11}{v['frame']:>7}{v['pairs']:>8d}"
-                f"{v['mean']:10.3f}{v['median']:8.3f}"
+        for cls, v in vel:  # no matched pair with a velocity: no mean / median
+            stats = "".join(
+                f"{'-':>{w}}" if v[k] is None else f"{v[k]:{w}.3f}"
+                for k, w in (("mean", 10), ("median", 8))
             )
+            lines.append(f"{cls.capitalize():<11}{v['frame']:>7}{v['pairs']:>8d}{stats}")
     return "\n".join(lines) + "\n"
