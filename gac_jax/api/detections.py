@@ -125,11 +125,8 @@ class Detections:
 
     def to_kitti_objects(self) -> KittiObjects:
         """As :class:`KittiObjects` (truncation and occlusion unknown: -1, as in result files)."""
-        n = len(self)
-        return KittiObjects.from_arrays(
+        return KittiObjects.predictions(
             type=self.names,
-            truncated=np.full(n, -1.0),
-            occluded=np.full(n, -1),
             alpha=self.alpha,
             bbox=self.boxes_2d,
             dimensions=self.dimensions,

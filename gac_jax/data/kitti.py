@@ -197,6 +197,13 @@ class KittiObjects:
         return cls.from_arrays(type=np.zeros((0,), dtype="<U16"))
 
     @classmethod
+    def predictions(cls, **fields) -> KittiObjects:
+        """Predicted objects (``type, alpha, bbox, dimensions, location, rotation_y, score``):
+        truncation and occlusion unknown (-1), as in KITTI result files."""
+        n = len(fields["type"])
+        return cls.from_arrays(truncated=np.full(n, -1.0), occluded=np.full(n, -1), **fields)
+
+    @classmethod
     def from_arrays(cls, **fields) -> KittiObjects:
         """Builds objects from any subset of fields; missing ones get KITTI's "unknown" values."""
         n = len(fields["type"])

@@ -220,11 +220,8 @@ class TrackedObjects:
 
     def to_kitti_objects(self) -> KittiObjects:
         """As :class:`KittiObjects` (no ids; for the detection pictures and result files)."""
-        n = len(self)
-        return KittiObjects.from_arrays(
+        return KittiObjects.predictions(
             type=self.names,
-            truncated=np.full(n, -1.0),
-            occluded=np.full(n, -1),
             alpha=self.alpha,
             bbox=self.boxes_2d,
             dimensions=self.dimensions,
