@@ -145,3 +145,43 @@ def describe_precision(
         )
     frames, date = entry.get("frames"), str(entry.get("created", ""))[:10]
     return f"precision: {what}; guard: {status} on {frames} frames ({date}): {entry.get('reason')}"
+
+
+# ----------------------------------------------------------------------------- the rule
+
+RULE_VERSION = 2  # 1: recall at the deployed threshold only, objects independent, one look
+
+
+def rule_mismatch(
+    entry: dict | None, score_threshold: float | None = None, margin: float | None = None
+) -> str | None:
+    """Why a stored verdict does not apply to a run with this ``score_threshold`` (the
+    deployed ``eval.score_threshold`` or the API's) and ``margin`` (None: not compared);
+    None when its rule matches. The rule is the entry's ``rule`` block (detector:
+    ``min_score``, ``score_thresholds``, ``margin_points``; depth: ``margin_silog``)."""
+    rule = (entry or {}).get("rule")
+    if not isinstance(rule, dict) or rule.get("version", 1) < RULE_VERSION:
+        return "decided under the earlier recall-only rule; python -m gac_jax.cli.guard re-decides"
+    stored = rule.get("min_score")
+    moved = stored is not None and score_threshold is not None
+    if moved and abs(float(stored) - float(score_threshold)) > 1e-9:
+        return f"decided at score threshold {stored}, this run uses {score_threshold}"
+    stored = rule.get("margin_points", rule.get("margin_silog"))
+    if margin is not None and stored is not None and abs(float(stored) - float(margin)) > 1e-9:
+        return f"decided with margin {stored}, this run asks for {margin}"
+    return None
+
+
+def previous_looks(export_dir: str | os.PathLike, model: dict, key: str) -> list[dict]:
+    """The earlier guard runs (looks) of candidate ``key`` on this ``model``: ``[{'frames',
+    'verdict', 'created'}, ...]`` (a verdict without a ``looks`` record counts as one look);
+    the next run is look ``len(...) + 1`` and spends alpha accordingly."""
+    stored = read_guard(export_dir)
+    if not stored or stored.get("model") != model:
+        return []
+    entry = stored["verdicts"].get(key)
+    if not entry:
+        return []
+    if isinstance(entry.get("looks"), list):
+        return list(entry["looks"])
+    return [{k: entry.get(k) for k in ("frames", "verdict", "created")}]
