@@ -2,19 +2,24 @@
 
     python -m gac_jax.cli.guard --workdir W --candidates openvino:int8,openvino:bf16
         [--guard-data DIR [--split val]] [--frames N] [--step N] [--margin 0.5]
-        [--heading-tolerance 30] [--int8-frames N] [--int8-seed S] [--threads T] [--json OUT]
+        [--ap-margin 1.0] [--resamples 200] [--heading-tolerance 30] [--int8-frames N]
+        [--int8-seed S] [--threads T] [--json OUT]
 
 Runs the detector of ``W`` (latest or ``--step`` checkpoint) on the guard frames with jitted
 float32 (the reference) and with every candidate (``RUNTIME:PRECISION``, ``+heading`` for int8
 with the heading kept in float32: ``openvino:int8+heading``), each exactly as ``evaluate.py
 --runtime R --precision P [--int8-keep-heading]`` builds it (export and int8 model in
 ``W/export/<step>``, int8 calibrated on the run's training split), and decides per candidate
-with :mod:`gac_jax.evaluation.paired_guard`: paired per-object outcomes at 2D@0.7, BEV@0.5/0.7,
-3D@0.5/0.7 and heading, per class and difficulty -> within / beyond / undecided (with the
-frames that would decide). Prints the Car AP|R40 table (all frames, difference to float32),
-each candidate's criteria, the matched detections' differences and the verdicts, and writes
-the verdicts to ``W/export/<step>/guard.json`` (:mod:`gac_jax.deploy.guard_verdict`), which
-``evaluate.py`` reads to say whether the precision it runs was guarded.
+with :mod:`gac_jax.evaluation.paired_guard`: paired recall at 2D@0.7, BEV@0.5/0.7, 3D@0.5/0.7
+and heading at the deployed score threshold and at 0.3 / 0.5 / 0.7 / 0.9 above it, false
+positives per frame above each, heading and centre error quantile shifts, per class and
+difficulty, and every AP entry with a paired frame bootstrap -> within / beyond / undecided
+(with the frames that would decide at the next look; a rerun on the same model is the next
+look and spends less alpha). Prints the Car AP|R40 table (all frames, difference to
+float32), each candidate's criteria that are not within, the matched detections' differences
+and the verdicts, and writes the verdicts with their rule to ``W/export/<step>/guard.json``
+(:mod:`gac_jax.deploy.guard_verdict`), which ``evaluate.py`` reads to say whether the
+precision it runs was guarded.
 
 Guard frames: ``--guard-data DIR`` (a KITTI-format root, e.g. generated frames the model never
 saw: ``python -m gac_jax.data.synthetic --out DIR --num 3200 --seed 2 --val-fraction 0.9375``)
