@@ -9,9 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gac_jax.data.kitti import KittiObjects, read_label, read_split
+from gac_jax.data.kitti import read_label, read_split
 from gac_jax.evaluation import ap_bootstrap
 from gac_jax.evaluation.kitti_object import DIFFICULTIES, DetectionEvalSet, evaluate_detections
+from tests.test_paired_guard import label_detections
 
 
 @pytest.fixture(scope="module")
@@ -19,24 +20,7 @@ def labelled(kitti_object_root):
     ids = read_split(kitti_object_root / "ImageSets" / "labeled.txt")
     gts = [read_label(kitti_object_root / "training" / "label_2" / f"{i}.txt") for i in ids]
     rng = np.random.default_rng(4)
-
-    def run():
-        out = []
-        for g in gts:  # the labels as detections, moved a little, plus one false positive
-            n = len(g)
-            d = KittiObjects.from_arrays(
-                type=np.where(np.isin(g.type, ["Car", "Van"]), "Car", "Pedestrian"),
-                alpha=g.alpha + rng.normal(0, 0.3, n),
-                bbox=g.bbox + rng.normal(0, 5, (n, 4)),
-                dimensions=g.dimensions * rng.uniform(0.9, 1.1, (n, 3)),
-                location=g.location + rng.normal(0, 0.3, (n, 3)),
-                rotation_y=g.rotation_y + rng.normal(0, 0.1, n),
-                score=rng.uniform(0.1, 1.0, n),
-            )
-            out.append(d)
-        return out
-
-    return gts, run(), run()
+    return gts, label_detections(gts, rng, 0.6), label_detections(gts, rng, 0.6)
 
 
 def _evaluator_entries(result: dict, cls: str = "Car") -> dict[str, float]:

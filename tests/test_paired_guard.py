@@ -64,23 +64,29 @@ def _detections(labels: list[KittiObjects], flip_share: float = 0.0, seed: int =
     return out
 
 
-def test_found_objects_match_the_devkit_statistics_pass(kitti_object_root):
-    ids = read_split(kitti_object_root / "ImageSets" / "labeled.txt")
-    gts = [read_label(kitti_object_root / "training" / "label_2" / f"{i}.txt") for i in ids]
-    rng = np.random.default_rng(3)
-    dts = []
-    for g in gts:  # the labels (cars and vans as "Car"), moved, resized and turned a little
+def label_detections(gts: list[KittiObjects], rng, scale: float = 1.0) -> list[KittiObjects]:
+    """The labels as detections (cars and vans as "Car", the rest "Pedestrian"), moved,
+    resized and turned a little (``scale`` times the default noise), random scores."""
+    out = []
+    for g in gts:
         n = len(g)
         d = KittiObjects.from_arrays(
             type=np.where(np.isin(g.type, ["Car", "Van"]), "Car", "Pedestrian"),
-            alpha=g.alpha + rng.normal(0, 0.6, n),
-            bbox=g.bbox + rng.normal(0, 6, (n, 4)),
-            dimensions=g.dimensions * rng.uniform(0.85, 1.15, (n, 3)),
-            location=g.location + rng.normal(0, 0.4, (n, 3)),
-            rotation_y=g.rotation_y + rng.normal(0, 0.2, n),
+            alpha=g.alpha + rng.normal(0, 0.6 * scale, n),
+            bbox=g.bbox + rng.normal(0, 6 * scale, (n, 4)),
+            dimensions=g.dimensions * rng.uniform(1 - 0.15 * scale, 1 + 0.15 * scale, (n, 3)),
+            location=g.location + rng.normal(0, 0.4 * scale, (n, 3)),
+            rotation_y=g.rotation_y + rng.normal(0, 0.2 * scale, n),
             score=rng.uniform(0.2, 1.0, n),
         )
-        dts.append(d)
+        out.append(d)
+    return out
+
+
+def test_found_objects_match_the_devkit_statistics_pass(kitti_object_root):
+    ids = read_split(kitti_object_root / "ImageSets" / "labeled.txt")
+    gts = [read_label(kitti_object_root / "training" / "label_2" / f"{i}.txt") for i in ids]
+    dts = label_detections(gts, np.random.default_rng(3))
     min_score = 0.4
     got = gc.frame_outcomes(gts, dts, "Car", (min_score, 0.7))
     for d, name in enumerate(("easy", "moderate", "hard")):
