@@ -68,7 +68,7 @@ def curve_pieces(
     }
     tp_score, tp_frame = [], []
     for grp in groups:
-        scores, rows = DetectionEvalSet._threshold_pass(grp)
+        scores, rows = DetectionEvalSet.threshold_pass(grp)
         tp_score.append(scores)
         tp_frame.append(grp.frame[rows])
         stats = DetectionEvalSet.level_statistics(grp, metric == "bbox")

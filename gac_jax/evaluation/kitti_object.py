@@ -279,7 +279,7 @@ class DetectionEvalSet:
             row = np.full(len(frames), -1)
             row[fb] = np.arange(len(fb))
             grp = _Group(len(fb), int(gp), int(dp))
-            grp.frame, grp.det = frames[fb], np.full((len(fb), int(dp)), -1)
+            grp.frame = frames[fb]  # the frame of each row
             gm = in_b[g_fidx]
             gr, gc, gi = row[g_fidx[gm]], g_local[gm], ug[gm]
             grp.ign_g[gr, gc] = ign_g[gi]
@@ -291,7 +291,6 @@ class DetectionEvalSet:
             grp.alpha_d[dr, dcol] = self.dt_alpha[di]
             grp.dc[dr, dcol] = dc_supp[di]
             grp.real_d[dr, dcol] = True
-            grp.det[dr, dcol] = di
             pm = in_b[g_fidx[g_inv]]
             pr = row[g_fidx[g_inv[pm]]]
             grp.cand[pr, g_local[g_inv[pm]], d_local[d_inv[pm]]] = True
@@ -300,7 +299,7 @@ class DetectionEvalSet:
         return groups
 
     @staticmethod
-    def _threshold_pass(grp: _Group) -> tuple[np.ndarray, np.ndarray]:
+    def threshold_pass(grp: _Group) -> tuple[np.ndarray, np.ndarray]:
         """``computeStatistics(compute_fp=False)``: each GT takes its highest-scoring
         candidate. Returns the true positives' scores and their rows (frames of the group)."""
         n, gp, dp = grp.cand.shape
@@ -402,7 +401,7 @@ class DetectionEvalSet:
             return self._curves[cache_key]
         n_valid, lone, groups = self.curve_parts(class_name, difficulty, metric, min_overlap)
         lone_fp = np.sort(self.dt_score[lone])
-        tp_scores = [self._threshold_pass(grp)[0] for grp in groups]
+        tp_scores = [self.threshold_pass(grp)[0] for grp in groups]
         thresholds = get_thresholds(
             np.concatenate(tp_scores) if tp_scores else np.zeros(0), max(n_valid, 1)
         )
