@@ -42,7 +42,7 @@ def test_every_frame_once_is_the_evaluator_and_a_resample_is_the_repeated_frames
     assert set(result) == set(expected) and len(expected) == 36
     for name, v in expected.items():
         assert result[name]["reference"] == pytest.approx(v, abs=1e-9), name
-        assert result[name]["diff"] == 0.0 and result[name]["se"] == 0.0
+        assert result[name]["diff"] == result[name]["se"] == result[name]["bias"] == 0.0
     evalset = DetectionEvalSet(gts, dts)
     counts = np.random.default_rng(0).multinomial(len(gts), np.full(len(gts), 1 / len(gts)))
     frames = np.repeat(np.arange(len(gts)), counts)
