@@ -47,10 +47,11 @@ def test_guard_writes_undecided_verdicts_with_the_frames_needed(guarded, capsys)
     for entry in data["verdicts"].values():
         assert entry["verdict"] == "undecided" and entry["frames"] == 4
         assert entry["frames_needed"] is None or entry["frames_needed"] > 4
-        assert "too few objects" in entry["reason"]
+        assert "too few frames" in entry["reason"]
     # ONNX Runtime float32 finds exactly the objects jax float32 finds
     crit = report["candidates"]["onnxruntime:f32"]["decision"]["criteria"]
-    assert all(r["ref_only"] == r["cand_only"] == 0 for r in crit.values())
+    counts = [r for r in crit.values() if r["kind"] != "ap"]
+    assert counts and all(r["ref_only"] == r["cand_only"] == 0 for r in counts)
     assert data["verdicts"]["openvino:int8+heading"]["int8"]["keep_heading"] is True
 
 
@@ -210,5 +211,25 @@ def test_a_changed_score_threshold_is_not_guarded(guarded):
     det = Detector3D.from_workdir(guarded[0], runtime="onnxruntime", score_threshold=0.3)
     line = det.precision_line()
     assert (
-        "not guarded for these weights: guarded at score threshold 0.0, this run uses 0.3" in line
+        "not guarded for these weights: decided at score threshold 0.0, this run uses 0.3" in line
     )
+
+
+def test_the_verdict_records_its_rule_and_look(guarded):
+    wd, _ = guarded
+    out = wd / "export" / "step2"
+    data = guard_verdict.read_guard(out)
+    entry = data["verdicts"]["onnxruntime:f32"]
+    rule = entry["rule"]
+    assert rule["version"] == guard_verdict.RULE_VERSION and rule["min_score"] == 0.0
+    assert rule["score_thresholds"] == [0.0, 0.3, 0.5, 0.7, 0.9] and rule["margin_points"] == 0.5
+    assert entry["look"] == 1 and entry["alpha_look"] == 0.025 and len(entry["looks"]) == 1
+    assert guard_verdict.rule_mismatch(entry, 0.0, 0.5) is None
+    assert "score threshold 0.0, this run uses 0.3" in guard_verdict.rule_mismatch(entry, 0.3)
+    assert "margin 0.5" in guard_verdict.rule_mismatch(entry, 0.0, 1.0)
+    old = {k: v for k, v in entry.items() if k not in ("rule", "looks")}
+    assert "earlier recall-only rule" in guard_verdict.rule_mismatch(old, 0.0)
+    # the next guard run of this model and candidate is look 2
+    looks = guard_verdict.previous_looks(out, data["model"], "onnxruntime:f32")
+    assert [look["frames"] for look in looks] == [4]
+    assert guard_verdict.previous_looks(out, {"weights": "other"}, "onnxruntime:f32") == []

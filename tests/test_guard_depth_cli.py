@@ -4,8 +4,10 @@ A depth network trained 2 steps on the real KITTI-depth frame; the guard runs ja
 and the candidates on 4 generated frames (both cameras): ONNX Runtime float32 is decided
 *within* (the same maps up to the 1/256 m PNG step), OpenVINO int8 runs end to end; the
 verdicts land in ``W/export/step2/guard.json``, and ``evaluate.py --task depth`` and
-``DepthPredictor.precision_line()`` say what the guard decided (or "not guarded"). One
-frame is too few for any verdict. Skipped without the deploy extra or NNCF.
+``DepthPredictor.precision_line()`` say what the guard decided (or "not guarded"). The guard
+normally takes at least 100 frames; these tests lower that minimum to 4 for the run above,
+and check that the real minimum refuses fewer frames (and ``--frames`` below it) with one
+line before any model runs. Skipped without the deploy extra or NNCF.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from gac_jax.cli import evaluate as evaluate_cli  # noqa: E402
 from gac_jax.cli import guard  # noqa: E402
 from gac_jax.data.synthetic.writer import generate_dataset  # noqa: E402
 from gac_jax.deploy import guard_verdict  # noqa: E402
+from gac_jax.evaluation import paired_depth_guard  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -46,12 +49,17 @@ def guarded(depth_workdir, tmp_path_factory):
     data = tmp_path_factory.mktemp("guard_depth_data") / "gen"
     generate_dataset(data, 8, seed=5, val_fraction=0.5, workers=1)  # 4 val frames
     report = depth_workdir.parent / "report.json"
-    assert guard.main([*guard_argv(depth_workdir, data), "--json", str(report)]) == 0
-    return depth_workdir, data, json.loads(report.read_text())
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(paired_depth_guard, "MIN_FRAMES", 4)  # 4 generated frames
+        assert guard.main([*guard_argv(depth_workdir, data), "--json", str(report)]) == 0
+        again = guard.guard_workdir(
+            guard.build_parser().parse_args(guard_argv(depth_workdir, data))
+        )
+    return depth_workdir, data, json.loads(report.read_text()), again
 
 
 def test_depth_guard_decides_onnxruntime_within_and_resumes(guarded):
-    wd, data, report = guarded
+    wd, data, report, again = guarded
     stored = guard_verdict.read_guard(wd / "export" / "step2")
     assert stored["model"]["weights"] == "step2" and stored["model"]["onnx_sha256"]
     assert "SILog" in stored["rule"]["text"] and stored["rule"]["margin_silog"] == 0.2
@@ -65,16 +73,20 @@ def test_depth_guard_decides_onnxruntime_within_and_resumes(guarded):
     rep = report["candidates"]["openvino:int8"]["decision"]["reported"]
     assert set(rep) >= {"silog", "abs_rel", "irmse", "rmse"}
     assert report["reference_ms"] > 0
-    # a rerun resumes the depth maps: nothing is predicted again, the same verdicts
-    again = guard.guard_workdir(guard.build_parser().parse_args(guard_argv(wd, data)))
+    assert report["candidates"]["onnxruntime:f32"]["decision"]["look"] == 1
+    assert ort["rule"]["min_frames"] == 4 and ort["drives"] >= 1
+    assert ort["look"] == 2 and [look["frames"] for look in ort["looks"]] == [4, 4]  # the rerun
+    # a rerun resumes the depth maps: nothing is predicted again; it is the second look
     assert again["reference_ms"] is None
     assert all(c["model_ms"] is None for c in again["candidates"].values())
     for key, c in again["candidates"].items():
-        assert c["decision"]["reason"] == report["candidates"][key]["decision"]["reason"]
+        first = report["candidates"][key]["decision"]
+        assert c["decision"]["look"] == 2 and c["decision"]["alpha_look"] == first["alpha"] / 4
+        assert c["decision"]["criteria"]["silog"]["diff"] == first["criteria"]["silog"]["diff"]
 
 
 def test_evaluate_and_the_api_print_the_depth_guards_verdict(guarded, capsys):
-    wd, _, _ = guarded
+    wd = guarded[0]
     argv = ["--task", "depth", "--workdir", str(wd), "--runtime", "onnxruntime"]
     evaluate_cli.main([*argv, "--out", str(wd.parent / "ev_ort")])
     out = capsys.readouterr().out
@@ -96,11 +108,14 @@ def test_evaluate_and_the_api_print_the_depth_guards_verdict(guarded, capsys):
     assert net.precision_line().startswith("precision: onnxruntime float32; guard: within on 4")
 
 
-def test_one_frame_is_undecided_and_heading_is_refused(depth_workdir, capsys):
+def test_fewer_frames_than_the_minimum_and_heading_are_refused(depth_workdir, capsys):
     argv = ["--workdir", str(depth_workdir), "--candidates", "onnxruntime:f32"]
-    assert guard.main(argv) == 0  # the run's own data: the one real KITTI-depth frame
-    out = capsys.readouterr().out
-    assert "undecided" in out and "at least 2 frames are needed" in out
+    assert guard.main(argv) == 2  # the run's own data: the one real KITTI-depth frame
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "1 frames; the depth guard needs at least 100 frames" in err
+    assert guard.main([*argv, "--frames", "50"]) == 2
+    err = capsys.readouterr().err
+    assert "--frames: the depth guard needs at least 100 frames, got 50" in err
     code = guard.main(["--workdir", str(depth_workdir), "--candidates", "openvino:int8+heading"])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "applies to detectors only" in err

@@ -76,9 +76,11 @@ def evaluate_workdir(
     export_dir: str | Path | None = None,
     int8: Int8Settings | None = None,
     max_batches: int | None = None,
+    frames: list[str] | None = None,
 ) -> dict:
     """Runs a trained depth model over a split; returns the evaluator's result dict (with
     each scored image's metrics in ``per_image``; ``metrics.json`` keeps the rest).
+    ``frames``: only these frame ids (both cameras; None: all).
 
     ``runtime`` / ``precision``: see :func:`runtime_predictor`; a non-default pair adds
     ``_<runtime>_<precision>`` to the default output folder. ``max_batches``: only the first
@@ -89,6 +91,10 @@ def evaluate_workdir(
     config, model, variables, step = restore_depth_model(workdir, step)
     sha = weights_sha256(variables)
     source = _data_source(config, data, split)
+    if frames is not None:
+        from gac_jax.evaluation.paired_depth_guard import sample_source
+
+        source = sample_source(source, frames)
     name = f"step_{step}_{_tag(source, split)}{run_suffix(runtime, precision)}"
     out = Path(out) if out else Path(workdir) / "eval" / name
     evaluator = builders.make_evaluator(config, source)

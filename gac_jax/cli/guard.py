@@ -2,19 +2,24 @@
 
     python -m gac_jax.cli.guard --workdir W --candidates openvino:int8,openvino:bf16
         [--guard-data DIR [--split val]] [--frames N] [--step N] [--margin 0.5]
-        [--heading-tolerance 30] [--int8-frames N] [--int8-seed S] [--threads T] [--json OUT]
+        [--ap-margin 1.0] [--resamples 200] [--heading-tolerance 30] [--int8-frames N]
+        [--int8-seed S] [--threads T] [--json OUT]
 
 Runs the detector of ``W`` (latest or ``--step`` checkpoint) on the guard frames with jitted
 float32 (the reference) and with every candidate (``RUNTIME:PRECISION``, ``+heading`` for int8
 with the heading kept in float32: ``openvino:int8+heading``), each exactly as ``evaluate.py
 --runtime R --precision P [--int8-keep-heading]`` builds it (export and int8 model in
 ``W/export/<step>``, int8 calibrated on the run's training split), and decides per candidate
-with :mod:`gac_jax.evaluation.paired_guard`: paired per-object outcomes at 2D@0.7, BEV@0.5/0.7,
-3D@0.5/0.7 and heading, per class and difficulty -> within / beyond / undecided (with the
-frames that would decide). Prints the Car AP|R40 table (all frames, difference to float32),
-each candidate's criteria, the matched detections' differences and the verdicts, and writes
-the verdicts to ``W/export/<step>/guard.json`` (:mod:`gac_jax.deploy.guard_verdict`), which
-``evaluate.py`` reads to say whether the precision it runs was guarded.
+with :mod:`gac_jax.evaluation.paired_guard`: paired recall at 2D@0.7, BEV@0.5/0.7, 3D@0.5/0.7
+and heading at the deployed score threshold and at 0.3 / 0.5 / 0.7 / 0.9 above it, false
+positives per frame above each, heading and centre error quantile shifts, per class and
+difficulty, and every AP entry with a paired frame bootstrap -> within / beyond / undecided
+(with the frames that would decide at the next look; a rerun on the same model is the next
+look and spends less alpha). Prints the Car AP|R40 table (all frames, difference to
+float32), each candidate's criteria that are not within, the matched detections' differences
+and the verdicts, and writes the verdicts with their rule to ``W/export/<step>/guard.json``
+(:mod:`gac_jax.deploy.guard_verdict`), which ``evaluate.py`` reads to say whether the
+precision it runs was guarded.
 
 Guard frames: ``--guard-data DIR`` (a KITTI-format root, e.g. generated frames the model never
 saw: ``python -m gac_jax.data.synthetic --out DIR --num 3200 --seed 2 --val-fraction 0.9375``)
@@ -38,6 +43,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+SHOWN_UNDECIDED = 8  # undecided criteria printed per candidate (beyond ones: all)
 HELP_CANDIDATES = "RUNTIME:PRECISION[,...], e.g. openvino:int8,openvino:int8+heading,openvino:bf16"
 
 
@@ -77,6 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--margin", type=float, default=None, help="points of found-rate (0.5); depth: SILog (0.2)"
     )
     p.add_argument("--alpha", type=float, default=None, help="error level (0.05)")
+    p.add_argument("--ap-margin", type=float, default=None, help="AP points (1.0)")
+    p.add_argument(
+        "--resamples", type=int, default=None, help="frame-bootstrap resamples of AP (200)"
+    )
     p.add_argument("--heading-tolerance", type=float, default=None, help="degrees (30)")
     p.add_argument("--int8-frames", type=int, help="calibration frames (as evaluate.py)")
     p.add_argument("--int8-seed", type=int, help="calibration seed (as evaluate.py)")
@@ -158,7 +168,7 @@ def guard_workdir(args) -> dict:
     from gac_jax.data.sources import open_object_source
     from gac_jax.deploy import guard_verdict
     from gac_jax.deploy.runtime_choice import default_export_dir, resolve_runtime
-    from gac_jax.evaluation import paired_guard
+    from gac_jax.evaluation import ap_bootstrap, guard_criteria, paired_guard
     from gac_jax.evaluation.ap_resampling import car_ap40
     from gac_jax.evaluation.detector_evaluator import ground_truth
     from gac_jax.evaluation.kitti_object import evaluate_detections
@@ -190,9 +200,14 @@ def guard_workdir(args) -> dict:
     batches = math.ceil(frames / batch)
     margin = paired_guard.MARGIN if args.margin is None else args.margin
     alpha = paired_guard.ALPHA if args.alpha is None else args.alpha
-    tol = paired_guard.HEADING_TOLERANCE_DEG
+    tol = guard_criteria.HEADING_TOLERANCE_DEG
     tol = tol if args.heading_tolerance is None else args.heading_tolerance
     min_score = float(config.eval.score_threshold)
+    thresholds = guard_criteria.score_thresholds(min_score)
+    ap_margin = paired_guard.AP_MARGIN if args.ap_margin is None else args.ap_margin
+    resamples = ap_bootstrap.RESAMPLES if args.resamples is None else args.resamples
+    if resamples < 2:
+        raise KittiFormatError("--resamples", f"must be at least 2, got {resamples}")
     classes = tuple(config.data.classes)
     base = workdir / "eval" / f"guard_{root.resolve().name}_{split}"
     runs = [("jax", "f32", False), *candidates]
@@ -217,12 +232,18 @@ def guard_workdir(args) -> dict:
         report = {"frames": len(ids), "reference_ap": ap_ref, "candidates": {}}
         verdicts = {}
         created = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+        model = guard_verdict.model_identity(export_dir, detector.tag, detector.weights_sha256)
+        rule = _rule(margin, ap_margin, alpha, tol, min_score, thresholds, resamples)
         for runtime, precision, heading in candidates:
             int8 = _settings(args, heading) if precision == "int8" else None
             key = guard_verdict.candidate_key(runtime, precision, int8)
             cand = [results[key][i] for i in ids]
-            tables = paired_guard.guard_tables(gt, ref, cand, classes, min_score, tol)
-            decision = paired_guard.decide(tables, len(ids), margin, alpha)
+            tables = guard_criteria.guard_tables(gt, ref, cand, classes, min_score, tol, thresholds)
+            ap = ap_bootstrap.paired_ap_bootstrap(gt, ref, cand, classes, resamples)
+            looks = guard_verdict.previous_looks(export_dir, model, key)
+            decision = paired_guard.decide(
+                tables, len(ids), margin, alpha, len(looks) + 1, ap, ap_margin
+            )
             ap = car_ap40(evaluate_detections(gt, cand, classes=("Car",)))
             matched = paired_guard.matched_differences(ref, cand)
             report["candidates"][key] = {
@@ -242,23 +263,50 @@ def guard_workdir(args) -> dict:
                 frames_needed=decision.get("frames_needed"),
                 guard_set={"data_root": str(root.resolve()), "split": split},
                 created=created,
-                criteria={
-                    n: {k: r[k] for k in ("n", "ref_only", "cand_only", "diff", "status")}
-                    for n, r in decision["criteria"].items()
-                },
+                criteria={n: _stored(r) for n, r in decision["criteria"].items()},
                 matched=matched,
+                rule=rule,
+                look=decision["look"],
+                alpha_look=decision["alpha_look"],
+                looks=[
+                    *looks,
+                    {"frames": len(ids), "verdict": decision["verdict"], "created": created},
+                ],
             )
-        rule = {
-            "text": "paired per-object outcomes vs jax float32 (gac_jax.evaluation.paired_guard)",
-            "margin_points": margin,
-            "alpha": alpha,
-            "heading_tolerance_deg": tol,
-            "min_score": min_score,
-        }
-        model = guard_verdict.model_identity(export_dir, detector.tag, detector.weights_sha256)
         report["guard_file"] = str(guard_verdict.write_guard(export_dir, model, rule, verdicts))
     print_report(report, speed["jax:f32"])
     return report
+
+
+def _rule(margin, ap_margin, alpha, tol, min_score, thresholds, resamples) -> dict:
+    """The rule a verdict was decided under (stored with it; see
+    :func:`gac_jax.deploy.guard_verdict.rule_mismatch`)."""
+    from gac_jax.deploy.guard_verdict import RULE_VERSION
+    from gac_jax.evaluation.guard_criteria import QUANTILES
+
+    return {
+        "version": RULE_VERSION,
+        "text": "paired recall at each score threshold, false positives per frame above each, "
+        "heading and centre error quantile shifts, and every AP entry vs jax float32 "
+        "(gac_jax.evaluation.paired_guard); frames as the unit",
+        "margin_points": margin,
+        "ap_margin_points": ap_margin,
+        "alpha": alpha,
+        "alpha_spending": "alpha / 2^k at look k",
+        "interval": "conservative discordance interval of the counts divided by the frames' "
+        "design effect; AP: diff -+ z * paired frame-bootstrap se",
+        "heading_tolerance_deg": tol,
+        "min_score": min_score,
+        "score_thresholds": list(thresholds),
+        "error_quantiles": list(QUANTILES),
+        "bootstrap_resamples": resamples,
+    }
+
+
+def _stored(row: dict) -> dict:
+    """A criterion as the verdict file keeps it."""
+    keys = ("kind", "n", "ref_only", "cand_only", "diff", "deff", "se", "limit", "status")
+    return {k: row[k] for k in keys if k in row}
 
 
 def print_report(report: dict, ref_ms) -> None:
@@ -274,14 +322,25 @@ def print_report(report: dict, ref_ms) -> None:
         print(f"{entry.removeprefix('Car '):26s}{v:9.2f}{cells}")
     for key, c in cands.items():
         d, m = c["decision"], c["matched"]
-        print(f"\n{key}: paired objects (lost / gained of n; diff and interval in points)")
-        for name, r in d["criteria"].items():
+        rows = d["criteria"]
+        beyond = {n: r for n, r in rows.items() if r["status"] == "beyond"}
+        open_ = [n for n, r in rows.items() if r["status"] == "undecided"]
+        shown = beyond | {n: rows[n] for n in open_[:SHOWN_UNDECIDED]}
+        print(
+            f"\n{key}: look {d['look']} (alpha {d['alpha_look']:.4g}); "
+            f"{len(rows) - len(shown)} of {len(rows)} criteria within their margins"
+            + ("; the others (lost / gained of n, or AP +- bootstrap se; points):" if shown else "")
+        )
+        for name, r in shown.items():
             iv = r["within_interval"] if r["status"] != "beyond" else r["beyond_interval"]
-            print(
-                f"  {name:26s} {r['ref_only']:4d} / {r['cand_only']:<4d} of {r['n']:6d}"
-                f"  {r['diff']:+6.2f} [{iv[0]:+6.2f}, {iv[1]:+6.2f}]  {r['status']:9s}"
-                f" McNemar Holm p {r['holm_p']:.3f}"
+            what = (
+                f"AP {r['diff']:+6.2f} +- {r['se']:.2f}"
+                if r["kind"] == "ap"
+                else f"{r['ref_only']:4d} / {r['cand_only']:<4d} of {r['n']:6d}  {r['diff']:+6.2f}"
             )
+            print(f"  {name:34s} {what} [{iv[0]:+6.2f}, {iv[1]:+6.2f}]  {r['status']}")
+        if len(open_) > SHOWN_UNDECIDED:
+            print(f"  ... and {len(open_) - SHOWN_UNDECIDED} more undecided (all in --json)")
         print(
             f"  matched detections {m['matched']} of {m['reference_detections']} "
             f"({m['detections']} candidate); |diff| median / p95 / max: "

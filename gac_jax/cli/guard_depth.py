@@ -14,16 +14,17 @@ metrics of each run, the paired differences and the verdicts, and writes the ver
 
 Guard frames: ``--guard-data DIR``, a KITTI-depth root (``DIR/data_depth_annotated``) or a
 generated dataset (its ``depth/`` folder is used), split ``--split`` (default ``val``); else
-the run's own evaluation data. ``--frames N``: the first N images (whole batches; a
-KITTI-depth split lists every left image before the right ones). Depth maps go to
-``W/eval/guard_<data>_<split>_step<N>/<candidate>/depth``, one PNG per image as they are made;
-a rerun resumes them.
+the run's own evaluation data. At least 100 frames (fewer are refused before any model runs);
+``--frames N`` (at least 100) takes N frames spread evenly over the drives, both cameras of
+each (:func:`gac_jax.evaluation.paired_depth_guard.spread_frames`), not the first N. Depth
+maps go to ``W/eval/guard_<data>_<split>_step<N>/<candidate>/depth``, one PNG per image as
+they are made; a rerun resumes them. A rerun on the same model is the next look and spends
+less alpha (:mod:`gac_jax.evaluation.paired_depth_guard`).
 """
 
 from __future__ import annotations
 
 import datetime
-import math
 from pathlib import Path
 
 
@@ -59,11 +60,7 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
     if root is not None and not root.exists():
         raise KittiFormatError(root, "guard data folder not found")
     split = args.split or ("val" if root is not None else None)
-    max_batches = None
-    if args.frames is not None:
-        if args.frames < 1:
-            raise KittiFormatError("--frames", f"must be at least 1, got {args.frames}")
-        max_batches = math.ceil(args.frames / int(config.data.eval_batch_size))
+    chosen = _guard_frames(config, root, split, args.frames)
     margin = paired_depth_guard.MARGIN if args.margin is None else args.margin
     alpha = paired_depth_guard.ALPHA if args.alpha is None else args.alpha
     data_name = Path(args.guard_data).resolve().name if root is not None else "own"
@@ -86,7 +83,7 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
                 precision,
                 export_dir,
                 int8,
-                max_batches,
+                frames=chosen,
             )
         ref = results["jax:f32"]
         if not ref["per_image"]:
@@ -94,13 +91,32 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
         report = {"frames": None, "reference": ref["metrics"], "candidates": {}}
         verdicts = {}
         created = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+        model = guard_verdict.model_identity(export_dir, f"step{step}", ref["weights_sha256"])
+        rule = {
+            "version": guard_verdict.RULE_VERSION,
+            "text": "paired per-frame SILog vs jax float32 (gac_jax.evaluation.paired_depth_guard)",
+            "margin_silog": margin,
+            "alpha": alpha,
+            "alpha_spending": "alpha / 2^k at look k",
+            "min_frames": paired_depth_guard.MIN_FRAMES,
+            "frames": "all" if chosen is None else "spread evenly over the drives",
+        }
         for runtime, precision, _ in candidates:
             int8 = settings(False) if precision == "int8" else None
             key = guard_verdict.candidate_key(runtime, precision, int8)
             res = results[key]
-            decision = paired_depth_guard.decide_depth(
-                ref["per_image"], res["per_image"], margin, alpha
-            )
+            looks = guard_verdict.previous_looks(export_dir, model, key)
+            try:
+                decision = paired_depth_guard.decide_depth(
+                    ref["per_image"],
+                    res["per_image"],
+                    margin,
+                    alpha,
+                    len(looks) + 1,
+                    paired_depth_guard.MIN_FRAMES,
+                )
+            except ValueError as e:
+                raise KittiFormatError(root or workdir, str(e)) from None
             report["frames"] = decision["frames"]
             ms = _model_ms(res)
             report["candidates"][key] = {"decision": decision, "model_ms": ms}
@@ -118,17 +134,49 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
                 guard_set={"data_root": str(root.resolve()) if root else None, "split": split},
                 created=created,
                 criteria={"silog": {k: row[k] for k in ("n", "diff", "status")}},
+                rule=rule,
+                look=decision["look"],
+                alpha_look=decision["alpha_look"],
+                looks=[
+                    *looks,
+                    {
+                        "frames": decision["frames"],
+                        "verdict": decision["verdict"],
+                        "created": created,
+                    },
+                ],
+                drives=len({paired_depth_guard.drive_of(r["frame"]) for r in ref["per_image"]}),
             )
-        rule = {
-            "text": "paired per-frame SILog vs jax float32 (gac_jax.evaluation.paired_depth_guard)",
-            "margin_silog": margin,
-            "alpha": alpha,
-        }
-        model = guard_verdict.model_identity(export_dir, f"step{step}", ref["weights_sha256"])
         report["guard_file"] = str(guard_verdict.write_guard(export_dir, model, rule, verdicts))
     report["reference_ms"] = _model_ms(ref)
     print_depth_report(report)
     return report
+
+
+def _guard_frames(config, root: Path | None, split: str | None, frames: int | None):
+    """The frame ids the guard runs on (None: all), checked before any model runs: at least
+    ``MIN_FRAMES`` of them, ``--frames N`` spread evenly over the drives."""
+    from gac_jax.cli.evaluate_depth import _data_source
+    from gac_jax.data.files import KittiFormatError
+    from gac_jax.evaluation import paired_depth_guard as pdg
+
+    if frames is not None and frames < pdg.MIN_FRAMES:
+        raise KittiFormatError(
+            "--frames", f"the depth guard needs at least {pdg.MIN_FRAMES} frames, got {frames}"
+        )
+    source = _data_source(config, str(root) if root is not None else None, split)
+    try:
+        ids = set(pdg.source_frame_ids(source))
+    except ValueError:
+        if frames is not None:
+            raise KittiFormatError("--frames", "this guard data cannot be sampled") from None
+        return None  # counted after the runs (decide_depth refuses too few)
+    if len(ids) < pdg.MIN_FRAMES:
+        raise KittiFormatError(
+            root if root is not None else "guard data",
+            f"{len(ids)} frames; the depth guard needs at least {pdg.MIN_FRAMES} frames",
+        )
+    return None if frames is None or frames >= len(ids) else pdg.spread_frames(sorted(ids), frames)
 
 
 def _model_ms(result: dict) -> float | None:

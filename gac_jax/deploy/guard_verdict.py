@@ -5,17 +5,19 @@
 
     {"format": 2,
      "model": {"weights": "step1750", "weights_sha256": ..., "onnx_sha256": ...},
-     "rule": {..., "min_score": 0.5, ...},
+     "rule": {...the latest run's rule...},
      "verdicts": {"openvino:int8": {"runtime", "precision", "int8", "network": {"onnx_sha256",
         "int8_sha256", "libraries"}, "verdict": "within"|"beyond"|"undecided", "reason",
-        "frames", "guard_set", "created", ...}, ...}}
+        "frames", "guard_set", "created", "criteria", "rule": {"version": 2, "min_score",
+        "score_thresholds", "margin_points", "ap_margin_points", "alpha", "alpha_spending",
+        ...}, "look", "alpha_look", "looks": [{"frames", "verdict", "created"}, ...]}, ...}}
 
 A verdict is bound to the weights it was made for by their hash (the sha256 of every array,
 :func:`gac_jax.trained.fingerprint.weights_sha256`), not by the step: a model retrained to the
 same step is "not guarded". It applies to a run only for the same weights, exported graph,
 int8 model (its IR's identity where the folder holds the int8 model of the same settings),
-runtime and quantizer versions, runtime, precision, int8 calibration settings and score
-threshold; :func:`verdict_for` says which and why not, and :func:`precision_line` is the line
+runtime and quantizer versions, runtime, precision, int8 calibration settings and the rule's
+score threshold (:func:`rule_mismatch`); :func:`verdict_for` says which and why not, and :func:`precision_line` is the line
 ``evaluate.py`` (and ``predict``) print. Writes are atomic; a new guard run replaces the
 verdicts of the precisions it guarded and keeps the others when the model is the same.
 Verdict files of an earlier format are not read (their rule and identity were weaker).
@@ -157,13 +159,9 @@ def verdict_for(
     entry = data["verdicts"].get(candidate_key(runtime, precision, int8))
     if entry is None or entry.get("int8") != _int8_block(precision, int8):
         return "not guarded", None, "no verdict for this runtime, precision and int8 settings"
-    rule_score = (data.get("rule") or {}).get("min_score")
-    if score_threshold is not None and rule_score is not None and rule_score != score_threshold:
-        return (
-            "not guarded",
-            None,
-            f"guarded at score threshold {rule_score}, this run uses {score_threshold}",
-        )
+    why = rule_mismatch(entry, score_threshold)
+    if why:
+        return "not guarded", None, why
     why = _network_differs(entry.get("network") or {}, export_dir, runtime, precision, int8)
     if why:
         return "not guarded", None, why
@@ -239,3 +237,43 @@ def describe_precision(
         )
     frames, date = entry.get("frames"), str(entry.get("created", ""))[:10]
     return f"precision: {what}; guard: {status} on {frames} frames ({date}): {entry.get('reason')}"
+
+
+# ----------------------------------------------------------------------------- the rule
+
+RULE_VERSION = 2  # 1: recall at the deployed threshold only, objects independent, one look
+
+
+def rule_mismatch(
+    entry: dict | None, score_threshold: float | None = None, margin: float | None = None
+) -> str | None:
+    """Why a stored verdict does not apply to a run with this ``score_threshold`` (the
+    deployed ``eval.score_threshold`` or the API's) and ``margin`` (None: not compared);
+    None when its rule matches. The rule is the entry's ``rule`` block (detector:
+    ``min_score``, ``score_thresholds``, ``margin_points``; depth: ``margin_silog``)."""
+    rule = (entry or {}).get("rule")
+    if not isinstance(rule, dict) or rule.get("version", 1) < RULE_VERSION:
+        return "decided under the earlier recall-only rule; python -m gac_jax.cli.guard re-decides"
+    stored = rule.get("min_score")
+    moved = stored is not None and score_threshold is not None
+    if moved and abs(float(stored) - float(score_threshold)) > 1e-9:
+        return f"decided at score threshold {stored}, this run uses {score_threshold}"
+    stored = rule.get("margin_points", rule.get("margin_silog"))
+    if margin is not None and stored is not None and abs(float(stored) - float(margin)) > 1e-9:
+        return f"decided with margin {stored}, this run asks for {margin}"
+    return None
+
+
+def previous_looks(export_dir: str | os.PathLike, model: dict, key: str) -> list[dict]:
+    """The earlier guard runs (looks) of candidate ``key`` on this ``model``: ``[{'frames',
+    'verdict', 'created'}, ...]`` (a verdict without a ``looks`` record counts as one look);
+    the next run is look ``len(...) + 1`` and spends alpha accordingly."""
+    stored = read_guard(export_dir)
+    if not stored or stored.get("model") != model:
+        return []
+    entry = stored["verdicts"].get(key)
+    if not entry:
+        return []
+    if isinstance(entry.get("looks"), list):
+        return list(entry["looks"])
+    return [{k: entry.get(k) for k in ("frames", "verdict", "created")}]

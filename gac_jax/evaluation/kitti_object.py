@@ -279,6 +279,7 @@ class DetectionEvalSet:
             row = np.full(len(frames), -1)
             row[fb] = np.arange(len(fb))
             grp = _Group(len(fb), int(gp), int(dp))
+            grp.frame = frames[fb]  # the frame of each row
             gm = in_b[g_fidx]
             gr, gc, gi = row[g_fidx[gm]], g_local[gm], ug[gm]
             grp.ign_g[gr, gc] = ign_g[gi]
@@ -298,24 +299,27 @@ class DetectionEvalSet:
         return groups
 
     @staticmethod
-    def _threshold_pass(grp: _Group) -> np.ndarray:
-        """``computeStatistics(compute_fp=False)``: each GT takes its highest-scoring candidate."""
+    def threshold_pass(grp: _Group) -> tuple[np.ndarray, np.ndarray]:
+        """``computeStatistics(compute_fp=False)``: each GT takes its highest-scoring
+        candidate. Returns the true positives' scores and their rows (frames of the group)."""
         n, gp, dp = grp.cand.shape
         rows = np.arange(n)
         assigned = np.zeros((n, dp), dtype=bool)
-        out = []
+        out, tp_rows = [], []
         for gi in range(gp):
             cand = grp.cand[:, gi] & ~assigned & (grp.score > NO_DETECTION)
             j = np.argmax(np.where(cand, grp.score, -np.inf), axis=1)  # first of equal scores
             has = cand.any(axis=1)
             tp = has & (grp.ign_g[:, gi] == 0) & (grp.ign_d[rows, j] == 0)
             out.append(grp.score[rows[tp], j[tp]])
+            tp_rows.append(rows[tp])
             assigned[rows[has], j[has]] = True
-        return np.concatenate(out)
+        return np.concatenate(out), np.concatenate(tp_rows)
 
     @staticmethod
-    def _statistics_pass(grp: _Group, thresholds: np.ndarray, with_aos: bool):
-        """``computeStatistics(compute_fp=True)`` at each threshold: (tp, fp, similarity) (T,)."""
+    def level_statistics(grp: _Group, with_aos: bool):
+        """``computeStatistics(compute_fp=True)`` per frame of the group when exactly its ``k``
+        highest-scoring detections pass (stable order): (tp, fp, similarity) (n, dp + 1)."""
         n, gp, dp = grp.cand.shape
         # Level k = the k highest-scoring detections of the frame pass the threshold.
         order = np.argsort(-grp.score, axis=1, kind="stable")
@@ -349,9 +353,29 @@ class DetectionEvalSet:
                 sim += np.where(hit, (1.0 + np.cos(delta)) / 2.0, 0.0)
             assigned |= has[..., None] & (slots == j[..., None])
         fp = np.sum(eligible & valid_d & ~assigned & ~grp.dc[:, None, :], axis=2)
+        return tp, fp, sim
+
+    @staticmethod
+    def _statistics_pass(grp: _Group, thresholds: np.ndarray, with_aos: bool):
+        """``computeStatistics(compute_fp=True)`` at each threshold: (tp, fp, similarity) (T,)."""
+        tp, fp, sim = DetectionEvalSet.level_statistics(grp, with_aos)
         # Per frame and threshold, the level = number of its detections scoring >= threshold.
         level = np.sum(grp.score[:, :, None] >= thresholds[None, None, :], axis=1)  # (n, T)
         return tuple(np.take_along_axis(a, level, axis=1).sum(axis=0) for a in (tp, fp, sim))
+
+    def curve_parts(self, class_name: str, difficulty: int, metric: str, min_overlap: float):
+        """``(num_valid_gt, lone (D,) bool, groups)``: the detections with no candidate ground
+        truth that are false positives (not ignored, not in a DontCare area) and the frame
+        groups of the statistics passes of one precision curve."""
+        ign_g, ign_d, n_valid = self.ignore_flags(class_name, difficulty)
+        pg, pd, ov = self.match_pairs(metric)
+        sel = (ov > min_overlap) & (ign_g[pg] != -1) & (ign_d[pd] != -1)
+        cg, cd, co = pg[sel], pd[sel], ov[sel]
+        dc_supp = self.dontcare_overlap(metric) > min_overlap
+        is_cand_d = np.zeros(len(self.dt_score), dtype=bool)
+        is_cand_d[cd] = True
+        groups = self._groups(cg, cd, co, ign_g, ign_d, dc_supp) if cg.size else []
+        return n_valid, (ign_d == 0) & ~is_cand_d & ~dc_supp, groups
 
     def precision_curves(
         self,
@@ -375,17 +399,9 @@ class DetectionEvalSet:
         cache_key = (class_name.lower(), difficulty, metric, float(min_overlap), with_aos)
         if cache_key in self._curves:
             return self._curves[cache_key]
-        ign_g, ign_d, n_valid = self.ignore_flags(class_name, difficulty)
-        pg, pd, ov = self.match_pairs(metric)
-        sel = (ov > min_overlap) & (ign_g[pg] != -1) & (ign_d[pd] != -1)
-        cg, cd, co = pg[sel], pd[sel], ov[sel]
-        dc_supp = self.dontcare_overlap(metric) > min_overlap
-        is_cand_d = np.zeros(len(self.dt_score), dtype=bool)
-        is_cand_d[cd] = True
-        # Detections with no candidate ground truth are FPs unless ignored or in a DontCare area.
-        lone_fp = np.sort(self.dt_score[(ign_d == 0) & ~is_cand_d & ~dc_supp])
-        groups = self._groups(cg, cd, co, ign_g, ign_d, dc_supp) if cg.size else []
-        tp_scores = [self._threshold_pass(grp) for grp in groups]
+        n_valid, lone, groups = self.curve_parts(class_name, difficulty, metric, min_overlap)
+        lone_fp = np.sort(self.dt_score[lone])
+        tp_scores = [self.threshold_pass(grp)[0] for grp in groups]
         thresholds = get_thresholds(
             np.concatenate(tp_scores) if tp_scores else np.zeros(0), max(n_valid, 1)
         )

@@ -8,13 +8,21 @@ frames. The unit is the *frame*: the left and right images of a frame see the sa
 their errors are correlated, so each frame contributes the mean over its images of
 ``candidate - reference``, and the interval is Student's t over the frames.
 
-The rule (``margin`` default 0.2 SILog points, ``alpha`` default 0.05), on SILog (the KITTI
-benchmark's ranking metric):
+The guard takes at least :data:`MIN_FRAMES` frames (fewer are refused: with a skewed
+per-frame difference, a few frames carrying a large change, a t interval on a handful of
+frames says "within" far too often) and :func:`spread_frames` picks them evenly across the
+drives in (drive, frame) order rather than the first N, which on KITTI are consecutive,
+strongly correlated frames of one or two drives.
 
-* **within**: the interval of the mean SILog difference at ``1 - 2 alpha`` (each side at
-  ``alpha``: two one-sided tests) lies inside ``[-margin, +margin]``.
-* **beyond**: its interval at ``1 - alpha`` lies entirely outside (the verdict says which way
-  and by how much).
+The rule (``margin`` default 0.2 SILog points, ``alpha`` default 0.05), on SILog (the KITTI
+benchmark's ranking metric), at look ``k`` (the k-th guard run of this model and candidate,
+``alpha_k = alpha / 2^k``: all looks together spend at most ``alpha``, as
+:func:`~gac_jax.evaluation.paired_proportions.look_alpha`):
+
+* **within**: the interval of the mean SILog difference at ``1 - 2 alpha_k`` (each side at
+  ``alpha_k``: two one-sided tests) lies inside ``[-margin, +margin]``.
+* **beyond**: its interval at ``1 - alpha_k`` lies entirely outside (the verdict says which
+  way and by how much).
 * **undecided** otherwise: the frames are too few; :func:`frames_needed` says how many would
   decide if the observed mean and spread held.
 
@@ -32,8 +40,11 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.special import stdtrit
 
+from gac_jax.evaluation.paired_proportions import look_alpha
+
 MARGIN = 0.2  # SILog points (100 log m)
 ALPHA = 0.05
+MIN_FRAMES = 100
 DECIDING = "silog"
 REPORTED = ("silog", "abs_rel", "sq_rel", "irmse", "rmse", "delta1")
 
@@ -115,29 +126,85 @@ def frames_needed(
     return hi
 
 
+def drive_of(frame_id: str) -> str:
+    """The drive (sequence) of a frame id: ``'<drive>/<frame>'`` -> ``<drive>``; a
+    ``depth_selection`` name ``<drive>_image_<frame>_image_0<c>`` -> ``<drive>``."""
+    if "/" in frame_id:
+        return frame_id.rsplit("/", 1)[0]
+    return frame_id.split("_image_", 1)[0]
+
+
+def spread_frames(frame_ids: Sequence[str], n: int) -> list[str]:
+    """``n`` distinct frame ids spread evenly over all drives: the ids sorted by (drive,
+    frame), then every ``len / n``-th (deterministic; each drive gets its share, and frames
+    of one drive are as far apart as the share allows). All of them when ``n`` is at least
+    their number."""
+    unique = sorted(set(frame_ids), key=lambda f: (drive_of(f), f))
+    if n >= len(unique):
+        return unique
+    picks = np.floor((np.arange(n) + 0.5) * len(unique) / n).astype(np.int64)
+    return [unique[i] for i in picks]
+
+
+def sample_source(source, frame_ids: Sequence[str]):
+    """A shallow copy of a depth source restricted to the images of ``frame_ids`` (both
+    cameras, the source's order kept): KITTI-depth folders (``frames``) and
+    ``depth_selection`` folders (``items``)."""
+    import copy
+
+    keep = set(frame_ids)
+    out = copy.copy(source)
+    if getattr(source, "frames", None) is not None:
+        out.frames = [f for f in source.frames if f.frame_id in keep]
+    elif getattr(source, "items", None) is not None:
+        out.items = [it for it in source.items if it.name in keep]
+    else:
+        raise ValueError("this depth source cannot be sampled (a KITTI-depth folder can)")
+    return out
+
+
+def source_frame_ids(source) -> list[str]:
+    """The frame ids of a depth source (KITTI-depth folder or ``depth_selection``)."""
+    if getattr(source, "frames", None) is not None:
+        return [f.frame_id for f in source.frames]
+    if getattr(source, "items", None) is not None:
+        return [it.name for it in source.items]
+    raise ValueError("this depth source cannot list its frames (a KITTI-depth folder can)")
+
+
 def decide_depth(
     ref: Sequence[dict],
     cand: Sequence[dict],
     margin: float = MARGIN,
     alpha: float = ALPHA,
+    look: int = 1,
+    min_frames: int = MIN_FRAMES,
 ) -> dict:
     """The rule of the module docstring.
 
     Args:
       ref, cand: per-image metric rows of float32 and of the candidate (same images).
+      look: which guard run of this model and candidate this is (1, 2, ...).
+    Raises:
+      ValueError: fewer than ``min_frames`` frames, or the runs scored different images.
     Returns:
       ``{'verdict': 'within'|'beyond'|'undecided', 'reason': one line, 'margin', 'alpha',
       'frames', 'images', 'deciding': 'silog', 'frames_needed' (undecided only),
       'reference': {metric: mean}, 'candidate': {metric: mean}, 'criteria': {'silog': {'n',
       'diff', 'sd', 'within_interval', 'beyond_interval', 'status'}}, 'reported': {metric:
       {'diff', 'interval'}}}`` (differences candidate - reference in each metric's unit;
-      ``interval`` at ``1 - 2 alpha``).
+      ``interval`` at ``1 - 2 alpha_k``).
     """
     frames, diffs = frame_differences(ref, cand, REPORTED)
     n = len(frames)
+    if n < min_frames:
+        raise ValueError(
+            f"the depth guard needs at least {min_frames} frames spread over the drives, got {n}"
+        )
+    a = look_alpha(alpha, look)
     column = diffs[:, REPORTED.index(DECIDING)] if n else np.zeros(0)
-    mean, w_lo, w_hi = mean_interval(column, alpha)
-    _, b_lo, b_hi = mean_interval(column, alpha / 2)
+    mean, w_lo, w_hi = mean_interval(column, a)
+    _, b_lo, b_hi = mean_interval(column, a / 2)
     sd = float(column.std(ddof=1)) if n > 1 else None
     if b_lo > margin or b_hi < -margin:
         status = "beyond"
@@ -155,11 +222,13 @@ def decide_depth(
     }
     reported = {}
     for j, m in enumerate(REPORTED):
-        d, lo, hi = mean_interval(diffs[:, j] if n else np.zeros(0), alpha)
+        d, lo, hi = mean_interval(diffs[:, j] if n else np.zeros(0), a)
         reported[m] = {"diff": d, "interval": [lo, hi]}
     out = {
         "margin": margin,
         "alpha": alpha,
+        "look": look,
+        "alpha_look": a,
         "frames": n,
         "images": len(ref),
         "deciding": DECIDING,
@@ -182,10 +251,12 @@ def decide_depth(
             f"{n} frames",
         }
     else:
-        side = alpha if abs(mean) < margin else alpha / 2
+        a_next = look_alpha(alpha, look + 1)
+        side = a_next if abs(mean) < margin else a_next / 2
         need = frames_needed(mean, sd, margin, side) if sd is not None else None
+        need = None if need is None else max(need, min_frames)
         needed_text = (
-            f"about {need} frames would decide it"
+            f"about {need} frames would decide it at look {look + 1}"
             if need is not None
             else "no affordable number of frames would decide it at the observed spread"
             if sd is not None

@@ -1,51 +1,41 @@
-"""Paired per-object accuracy guard: float32 vs a candidate precision on the same frames.
+"""The paired accuracy guard's rule: does a candidate precision keep float32's detector?
 
 AP|R40 of a few thousand frames moves in ~2 AP steps when a detection or two cross an IoU
-threshold, so an AP difference cannot say whether a precision is within a small tolerance.
-This module decides on *paired per-object outcomes* instead. Both runs are scored on the same
-frames; every ground-truth object that the devkit evaluates for a class and difficulty
-(:meth:`~gac_jax.evaluation.kitti_object.DetectionEvalSet.ignore_flags`: ``ignored_gt == 0``)
-is *found* or *missed* by each run at each criterion:
+threshold, so an AP difference alone cannot say whether a precision is within a small
+tolerance. The guard decides on paired outcomes of the two runs on the same frames
+(:mod:`gac_jax.evaluation.guard_criteria`: recall at several score thresholds, false positives
+per frame above each, heading within 30 degrees, heading and centre error quantile shifts;
+per class and difficulty) **and** on the paired AP difference itself
+(:mod:`gac_jax.evaluation.ap_bootstrap`: AP|R11 and AP|R40, 2D, BEV, 3D and AOS, every
+difficulty, with a paired frame-bootstrap standard error).
 
-* ``2d@0.70``, ``bev@0.50``, ``bev@0.70``, ``3d@0.50``, ``3d@0.70`` (Car thresholds; other
-  classes use theirs): the devkit's statistics pass at the deployed score threshold (every
-  detection of the result files scoring at least ``min_score``): each ground truth in label
-  order takes the free non-ignored detection of largest overlap above the threshold, else a
-  free ignored one (too small: found by neither); found = a true positive.
-* ``heading``: found at ``2d@0.70`` *and* the matched detection's observation angle within
-  ``heading_tolerance`` (default 30 deg) of the label's (AOS's matching; AOS weighs the
-  same error by ``(1 + cos d) / 2``).
+Intervals (:mod:`gac_jax.evaluation.paired_proportions`): a count criterion's interval is the
+conservative discordance interval of its counts divided by the frames' design effect (frames
+as the unit); an AP entry's is ``diff -+ z se`` with the bootstrap's ``se`` (approximate: AP
+is not a mean over frames). Margins: ``margin`` (default 0.5 points of the objects: found-rate
+or false positives per 100 objects) for the count criteria, ``ap_margin`` (default 1.0 AP
+point) for the AP entries.
 
-Per criterion the outcomes form a 2x2 table: ``both`` found, ``ref_only`` (lost by the
-candidate), ``cand_only`` (gained), ``neither``. The difference of found-rates is
-``delta = (cand_only - ref_only) / n`` (points = percent of the objects). Its confidence
-interval is *discordance-based and exact*: ``delta = q (2 p - 1)`` with ``q`` the share of
-discordant objects (``ref_only + cand_only`` of ``n``) and ``p`` the share of discordant
-objects the candidate found; Clopper-Pearson intervals for ``q`` and ``p``, each at half the
-error level, bound ``delta`` together (Bonferroni, so the interval's coverage is at least the
-stated one). With no discordant object it is ``+-q_hi``, e.g. ``+-0.50`` points for 736
-objects in the "within" test below: *agreement on few objects is no evidence of equivalence*.
+The rule, at look ``k`` (the k-th guard run of this model and candidate; ``alpha_k = alpha /
+2^k``, so all looks together spend at most ``alpha``):
 
-The rule (``margin`` default 0.5 points, ``alpha`` default 0.05):
+* **within** (a positive claim): every criterion's interval at ``1 - 2 alpha_k`` (each side
+  at ``alpha_k``: two one-sided tests) lies inside ``[-margin, +margin]``. By the
+  intersection-union principle this decides "all within" at level ``alpha_k`` without a
+  multiplicity correction. What it guarantees: with probability at least ``1 - alpha`` over
+  the guard frames, on frames like them the candidate finds no fewer objects (per class,
+  difficulty, overlap and score threshold), makes no more false positives, keeps its heading
+  and centre errors, and moves no AP entry by more than the margins (the AP entries as far
+  as the bootstrap's standard error is right).
+* **beyond**: some criterion's interval at ``1 - alpha_k / K`` (Bonferroni over the ``K``
+  criteria) lies entirely outside its margin; the verdict names it and the difference.
+* **undecided** otherwise: the frames are too few; the verdict says about how many frames
+  would decide at the next look if the observed rates held.
 
-* **within** (a positive claim): every criterion's interval at ``1 - 2 alpha`` (each side at
-  ``alpha``: two one-sided tests) lies inside ``[-margin, +margin]``. By the
-  intersection-union principle this decides "all within" at level ``alpha`` without a
-  multiplicity correction.
-* **beyond**: some criterion's interval at ``1 - alpha / K`` (Bonferroni over the ``K``
-  criteria) lies entirely outside ``[-margin, +margin]``; the verdict names it and the
-  difference.
-* **undecided** otherwise: the objects are too few; :func:`objects_needed` says how many
-  objects (and :func:`decide` how many frames, at this set's objects per frame) would decide
-  each open criterion if its observed rates held.
+Also reported, not deciding: the exact McNemar test of ``delta = 0`` per count criterion
+(Holm-adjusted: "changed" even if within the margin) and :func:`matched_differences`.
 
-Also reported, not deciding: the exact McNemar test of ``delta = 0`` (binomial test on the
-discordant objects, Holm-adjusted over the criteria: "changed" even if within the margin),
-and :func:`matched_differences`: the candidate's detections matched to float32's (same
-class, 2D IoU >= 0.5, greedy by score) with the median / p95 / max of the score, 3D centre,
-dimension and heading (``rotation_y``) differences and the heading flips (> 90 deg).
-
-Pure numpy and file reading; no JAX.
+Pure numpy; no JAX.
 """
 
 from __future__ import annotations
@@ -54,204 +44,27 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.special import ndtri
 
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.detection.nms import box_iou_matrix
-from gac_jax.evaluation.kitti_object import DIFFICULTIES, MIN_OVERLAPS, DetectionEvalSet
+from gac_jax.evaluation.guard_criteria import wrap
+from gac_jax.evaluation.paired_proportions import (
+    clustered_interval,
+    difference_interval,
+    holm,
+    look_alpha,
+    mcnemar_p,
+    table_sums,
+)
 
-MARGIN = 0.5  # points (percent of the objects) of found-rate
+MARGIN = 0.5  # points (percent of the objects) of found-rate / false positives
+AP_MARGIN = 1.0  # AP points
 ALPHA = 0.05
-HEADING_TOLERANCE_DEG = 30.0
 MATCH_IOU = 0.5  # candidate detection <-> float32 detection, for the paired distributions
-_BOX_CRITERIA = (("2d", "bbox", 0), ("bev", "bev", 1), ("3d", "3d", 2))
 
 
-def criteria(class_name: str) -> list[tuple[str, str, float]]:
-    """``(name, devkit metric, min overlap)`` of a class: 2D at the strict threshold, BEV and
-    3D at the loose and strict ones (Car: ``2d@0.70, bev@0.50, bev@0.70, 3d@0.50, 3d@0.70``)."""
-    strict, loose = MIN_OVERLAPS[class_name]
-    out = [(f"2d@{strict[0]:.2f}", "bbox", strict[0])]
-    for prefix, metric, k in _BOX_CRITERIA[1:]:
-        for thr in sorted({loose[k], strict[k]}):
-            out.append((f"{prefix}@{thr:.2f}", metric, thr))
-    return out
-
-
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    """Angle differences in ``[-pi, pi)``."""
-    return (np.asarray(angle, np.float64) + np.pi) % (2.0 * np.pi) - np.pi
-
-
-def _take_detections(evalset, metric, thr, ign_g, ign_d, usable) -> tuple[np.ndarray, np.ndarray]:
-    """The devkit's statistics pass (one threshold): ``(found (G,), detection (G,))`` where
-    ``found`` marks true positives and ``detection`` the matched detection's index (-1)."""
-    n_gt = len(ign_g)
-    found = np.zeros(n_gt, dtype=bool)
-    chosen = np.full(n_gt, -1, dtype=np.int64)
-    pg, pd, ov = evalset.match_pairs(metric)
-    sel = (ov > thr) & (ign_g[pg] != -1) & (ign_d[pd] != -1) & usable[pd]
-    pg, pd, ov = pg[sel], pd[sel], ov[sel]
-    order = np.lexsort((pd, pg))  # ground truth in label order, detections in index order
-    pg, pd, ov = pg[order], pd[order], ov[order]
-    assigned = np.zeros(len(ign_d), dtype=bool)
-    bounds = np.flatnonzero(np.diff(pg)) + 1
-    for g_idx, js, os in zip(
-        pg[np.r_[0, bounds]] if pg.size else [],
-        np.split(pd, bounds),
-        np.split(ov, bounds),
-        strict=False,
-    ):
-        free = ~assigned[js]
-        valid = free & (ign_d[js] == 0)
-        if valid.any():
-            k = int(np.argmax(np.where(valid, os, -1.0)))  # first of equal overlaps
-            found[g_idx] = ign_g[g_idx] == 0
-        elif (free & (ign_d[js] == 1)).any():
-            k = int(np.argmax(free & (ign_d[js] == 1)))
-        else:
-            continue
-        assigned[js[k]] = True
-        chosen[g_idx] = js[k]
-    return found, chosen
-
-
-def object_outcomes(
-    gt: Sequence[KittiObjects],
-    dt: Sequence[KittiObjects],
-    class_name: str = "Car",
-    min_score: float = 0.0,
-    heading_tolerance_deg: float = HEADING_TOLERANCE_DEG,
-) -> dict[str, dict[str, np.ndarray]]:
-    """Found (True) / missed per evaluated ground-truth object, per difficulty and criterion.
-
-    Args:
-      gt: per frame, the labels (DontCare included); the same for every run compared.
-      dt: per frame, one run's detections (``score`` set).
-      min_score: detections scoring lower are not used (the deployed threshold).
-
-    Returns:
-      ``{difficulty: {criterion: (N_d,) bool}}``: ``N_d`` the objects that difficulty
-      evaluates, in frame and label order (so two runs' arrays pair object by object);
-      criteria of :func:`criteria` plus ``"heading"``.
-    """
-    evalset = DetectionEvalSet(gt, dt)
-    usable = evalset.dt_score >= min_score
-    tol = math.radians(heading_tolerance_deg)
-    out = {}
-    for d, name in enumerate(DIFFICULTIES):
-        ign_g, ign_d, _ = evalset.ignore_flags(class_name, d)
-        counted = ign_g == 0
-        per = {}
-        for crit, metric, thr in criteria(class_name):
-            found, chosen = _take_detections(evalset, metric, thr, ign_g, ign_d, usable)
-            per[crit] = found[counted]
-            if metric == "bbox":
-                error = np.abs(_wrap(evalset.dt_alpha[chosen] - evalset.gt_alpha))
-                per["heading"] = (found & (error <= tol))[counted]
-        out[name] = per
-    return out
-
-
-# ----------------------------------------------------------------------------- statistics
-
-
-_LOG_FACTORIALS = np.zeros(1)
-
-
-def _log_factorials(n: int) -> np.ndarray:
-    """``log k!`` for ``k = 0..n`` (cached, grown on demand)."""
-    global _LOG_FACTORIALS
-    if len(_LOG_FACTORIALS) <= n:
-        k = np.arange(1, 2 * n + 2, dtype=np.float64)
-        _LOG_FACTORIALS = np.concatenate([[0.0], np.cumsum(np.log(k))])
-    return _LOG_FACTORIALS[: n + 1]
-
-
-def binom_cdf(x: int, n: int, p: float) -> float:
-    """``P(X <= x)`` for ``X ~ Binomial(n, p)``."""
-    if x < 0:
-        return 0.0
-    if x >= n or p <= 0.0:
-        return 1.0
-    if p >= 1.0:
-        return 0.0
-    lf = _log_factorials(n)
-    k = np.arange(x + 1)
-    logs = lf[n] - lf[k] - lf[n - k] + k * math.log(p) + (n - k) * math.log1p(-p)
-    top = logs.max()
-    return float(min(1.0, math.exp(top) * np.exp(logs - top).sum()))
-
-
-def _bisect(f, target: float, increasing: bool) -> float:
-    """``p`` in [0, 1] with ``f(p) = target`` for a monotone ``f``."""
-    lo, hi = 0.0, 1.0
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        below = f(mid) < target
-        lo, hi = (mid, hi) if below == increasing else (lo, mid)
-    return 0.5 * (lo + hi)
-
-
-def clopper_pearson(x: int, n: int, alpha_each_side: float) -> tuple[float, float]:
-    """Exact binomial interval for ``x`` successes of ``n``: each bound has error
-    ``alpha_each_side`` (``(0, 1)`` for ``n = 0``)."""
-    if n == 0:
-        return 0.0, 1.0
-    a = alpha_each_side
-    lower = 0.0 if x == 0 else _bisect(lambda p: 1.0 - binom_cdf(x - 1, n, p), a, True)
-    upper = 1.0 if x == n else _bisect(lambda p: binom_cdf(x, n, p), a, False)
-    return lower, upper
-
-
-def difference_interval(
-    ref_only: int, cand_only: int, n: int, alpha_each_side: float
-) -> tuple[float, float]:
-    """Bounds (points) of the found-rate difference ``candidate - float32`` (module
-    docstring); each bound holds with error at most ``alpha_each_side``."""
-    if n == 0:
-        return -100.0, 100.0
-    m = ref_only + cand_only
-    q_lo, q_hi = clopper_pearson(m, n, alpha_each_side / 2)
-    p_lo, p_hi = clopper_pearson(cand_only, m, alpha_each_side / 2)
-    low = min(q * (2 * p_lo - 1) for q in (q_lo, q_hi))
-    high = max(q * (2 * p_hi - 1) for q in (q_lo, q_hi))
-    return 100.0 * low, 100.0 * high
-
-
-def mcnemar_p(ref_only: int, cand_only: int) -> float:
-    """Exact two-sided McNemar p-value (binomial test of the discordant objects at 1/2)."""
-    m = ref_only + cand_only
-    if m == 0:
-        return 1.0
-    return min(1.0, 2.0 * binom_cdf(min(ref_only, cand_only), m, 0.5))
-
-
-def holm(p_values: Sequence[float]) -> list[float]:
-    """Holm step-down adjusted p-values (same order)."""
-    order = np.argsort(p_values)
-    k = len(p_values)
-    adjusted, running = [0.0] * k, 0.0
-    for rank, i in enumerate(order):
-        running = max(running, min(1.0, (k - rank) * p_values[i]))
-        adjusted[i] = running
-    return adjusted
-
-
-def paired_table(ref: np.ndarray, cand: np.ndarray) -> dict[str, int]:
-    """The 2x2 table of paired outcomes (same objects, same order)."""
-    ref, cand = np.asarray(ref, bool), np.asarray(cand, bool)
-    if ref.shape != cand.shape:
-        raise ValueError(f"paired outcomes need the same objects: {ref.shape} vs {cand.shape}")
-    return {
-        "n": int(ref.size),
-        "both": int(np.sum(ref & cand)),
-        "ref_only": int(np.sum(ref & ~cand)),
-        "cand_only": int(np.sum(~ref & cand)),
-        "neither": int(np.sum(~ref & ~cand)),
-    }
-
-
-def _scaled(table: dict[str, int], n: int) -> tuple[int, int]:
+def _scaled(table: dict, n: int) -> tuple[int, int]:
     """``(ref_only, cand_only)`` of ``n`` objects at ``table``'s discordance rates."""
     m = round(n * (table["ref_only"] + table["cand_only"]) / max(table["n"], 1))
     m_obs = table["ref_only"] + table["cand_only"]
@@ -260,11 +73,12 @@ def _scaled(table: dict[str, int], n: int) -> tuple[int, int]:
 
 
 def objects_needed(
-    table: dict[str, int], margin: float, alpha_each_side: float, limit: int = 10_000_000
+    table: dict, margin: float, alpha_each_side: float, limit: int = 10_000_000
 ) -> int | None:
-    """The fewest objects at which this criterion's interval (``alpha_each_side``) would lie
-    inside ``+-margin`` (observed difference within it) or outside it (beyond), if the
-    observed discordance rates held; None if even ``limit`` objects would not decide."""
+    """The fewest (independent) objects at which the conservative interval
+    (``alpha_each_side``) would lie inside ``+-margin`` (observed difference within it) or
+    outside it (beyond), if the observed discordance rates held; None if even ``limit``
+    objects would not decide."""
     n = max(table["n"], 1)
     delta = 100.0 * (table["cand_only"] - table["ref_only"]) / n
     if table["n"] and abs(delta) == margin:
@@ -287,88 +101,151 @@ def objects_needed(
     return hi
 
 
+def _count_row(t: dict, margin: float, a_within: float, a_beyond: float) -> dict:
+    sums = table_sums(t)
+    lo, hi, deff = clustered_interval(sums, a_within)
+    b_lo, b_hi, _ = clustered_interval(sums, a_beyond)
+    n = t["n"]
+    row = {k: v for k, v in t.items() if not k.startswith("frame_")}
+    return row | {
+        "kind": t.get("kind", "recall"),
+        "diff": 100.0 * (t["cand_only"] - t["ref_only"]) / n if n else 0.0,
+        "margin": margin,
+        "deff": deff,
+        "within_interval": [lo, hi],
+        "beyond_interval": [b_lo, b_hi],
+        "mcnemar_p": mcnemar_p(t["ref_only"], t["cand_only"]),
+    }
+
+
+def _ap_row(entry: dict, margin: float, a_within: float, a_beyond: float) -> dict:
+    diff, se = float(entry["diff"]), float(entry["se"])
+    w, b = float(ndtri(1 - a_within)) * se, float(ndtri(1 - a_beyond)) * se
+    return {
+        "kind": "ap",
+        "diff": diff,
+        "se": se,
+        "margin": margin,
+        "within_interval": [diff - w, diff + w],
+        "beyond_interval": [diff - b, diff + b],
+    }
+
+
+def _frames_needed(row: dict, frames: int, a_within: float, a_beyond: float) -> int | None:
+    """Frames at which this open criterion would decide (next look's levels), if the
+    observed rates (count criteria, at their design effect) or the bootstrap's standard
+    error times sqrt(frames) (AP entries) held; None if no affordable number would."""
+    margin, diff = row["margin"], row["diff"]
+    within = abs(diff) < margin
+    if row["kind"] == "ap":
+        gap = margin - abs(diff) if within else abs(diff) - margin
+        if gap <= 0 or row["se"] == 0:
+            return None
+        z = ndtri(1 - (a_within if within else a_beyond))
+        return math.ceil(frames * (z * row["se"] / gap) ** 2)
+    if not row["n"] or not frames:
+        return None
+    deff = row["deff"]
+    eff = {
+        "n": round(row["n"] / deff),
+        "ref_only": round(row["ref_only"] / deff),
+        "cand_only": round(row["cand_only"] / deff),
+    }
+    need = objects_needed(eff, margin, a_within if within else a_beyond)
+    return None if need is None else math.ceil(need * deff / (row["n"] / frames))
+
+
 def decide(
-    tables: dict[str, dict[str, int]],
+    tables: dict[str, dict],
     frames: int,
     margin: float = MARGIN,
     alpha: float = ALPHA,
+    look: int = 1,
+    ap: dict[str, dict] | None = None,
+    ap_margin: float = AP_MARGIN,
 ) -> dict:
-    """The rule of the module docstring over every criterion's paired table.
+    """The rule of the module docstring over every criterion.
 
     Args:
-      tables: ``{"moderate 3d@0.70": paired_table(...), ...}`` (one per difficulty and
-        criterion; empty tables count as undecided).
-      frames: the frames the tables come from (for the frames a decision would need).
+      tables: ``{"Car moderate 3d@0.70": table, ...}``
+        (:func:`~gac_jax.evaluation.guard_criteria.guard_tables`, with per-frame counts).
+      frames: the frames the tables come from.
+      look: which guard run of this model and candidate this is (1, 2, ...).
+      ap: ``{"Car AP40 3d@0.70 moderate": {'diff', 'se'}, ...}``
+        (:func:`~gac_jax.evaluation.ap_bootstrap.paired_ap_bootstrap`), or None.
 
     Returns:
-      ``{'verdict': 'within'|'beyond'|'undecided', 'reason': one line, 'margin', 'alpha',
-      'frames', 'frames_needed' (undecided only), 'criteria': {name: {table..., 'diff',
-      'within_interval', 'beyond_interval', 'mcnemar_p', 'holm_p', 'status'}}}`` with
-      ``status`` one of within / beyond / undecided and ``diff`` in points.
+      ``{'verdict': 'within'|'beyond'|'undecided', 'reason': one line, 'deciding', 'margin',
+      'ap_margin', 'alpha', 'look', 'alpha_look', 'frames', 'frames_needed' (undecided
+      only), 'criteria': {name: {'kind': recall|fp|ap, 'diff', 'margin', 'within_interval',
+      'beyond_interval', 'status', ...}}}``; count rows also carry the table, ``deff``,
+      ``mcnemar_p`` and ``holm_p``, AP rows ``se``. Differences in points.
     """
-    k = len(tables)
-    rows = {}
-    for name, t in tables.items():
-        n = t["n"]
-        diff = 100.0 * (t["cand_only"] - t["ref_only"]) / n if n else 0.0
-        within_iv = difference_interval(t["ref_only"], t["cand_only"], n, alpha)
-        beyond_iv = difference_interval(t["ref_only"], t["cand_only"], n, alpha / (2 * k))
-        if n and (beyond_iv[0] > margin or beyond_iv[1] < -margin):
-            status = "beyond"
-        elif n and -margin <= within_iv[0] and within_iv[1] <= margin:
-            status = "within"
+    ap = ap or {}
+    k = len(tables) + len(ap)
+    a = look_alpha(alpha, look)
+    rows = {n: _count_row(t, margin, a, a / (2 * k)) for n, t in tables.items()}
+    rows |= {n: _ap_row(e, ap_margin, a, a / (2 * k)) for n, e in ap.items()}
+    for r in rows.values():
+        (lo, hi), (b_lo, b_hi), m = r["within_interval"], r["beyond_interval"], r["margin"]
+        empty = r["kind"] != "ap" and not r["n"]
+        if not empty and (b_lo > m or b_hi < -m):
+            r["status"] = "beyond"
+        elif not empty and -m <= lo and hi <= m:
+            r["status"] = "within"
         else:
-            status = "undecided"
-        rows[name] = {
-            **t,
-            "diff": diff,
-            "within_interval": list(within_iv),
-            "beyond_interval": list(beyond_iv),
-            "mcnemar_p": mcnemar_p(t["ref_only"], t["cand_only"]),
-            "status": status,
-        }
-    for name, p in zip(rows, holm([r["mcnemar_p"] for r in rows.values()]), strict=True):
+            r["status"] = "undecided"
+    counted = [n for n in rows if rows[n]["kind"] != "ap"]
+    for name, p in zip(counted, holm([rows[n]["mcnemar_p"] for n in counted]), strict=True):
         rows[name]["holm_p"] = p
-    out = {"margin": margin, "alpha": alpha, "frames": frames, "criteria": rows}
+    out = {
+        "margin": margin,
+        "ap_margin": ap_margin,
+        "alpha": alpha,
+        "look": look,
+        "alpha_look": a,
+        "frames": frames,
+        "criteria": rows,
+    }
     beyond = {n: r for n, r in rows.items() if r["status"] == "beyond"}
     if beyond:
-        worst = max(beyond, key=lambda n: abs(beyond[n]["diff"]))
+        worst = max(beyond, key=lambda n: abs(beyond[n]["diff"]) / beyond[n]["margin"])
         r = beyond[worst]
-        moved = ", ".join(f"{n} {beyond[n]['diff']:+.2f}" for n in beyond)
+        moved = ", ".join(f"{n} {beyond[n]['diff']:+.2f}" for n in list(beyond)[:6])
+        more = f" and {len(beyond) - 6} more" if len(beyond) > 6 else ""
+        detail = (
+            f"{r['ref_only']} lost, {r['cand_only']} gained of {r['n']}"
+            if r["kind"] != "ap"
+            else f"AP moved {r['diff']:+.2f} +- {r['se']:.2f} (bootstrap se)"
+        )
         out |= {
             "verdict": "beyond",
             "deciding": worst,
-            "reason": f"found-rate moved beyond {margin} points: {moved} (points; {worst}: "
-            f"{r['ref_only']} objects lost, {r['cand_only']} gained of {r['n']})",
+            "reason": f"moved beyond the margins ({margin} points, AP {ap_margin}): "
+            f"{moved}{more} (points; {worst}: {detail})",
         }
         return out
     open_ = [n for n, r in rows.items() if r["status"] == "undecided"]
     if not open_:
-        widest = max(rows, key=lambda n: max(map(abs, rows[n]["within_interval"])))
+        widest = max(
+            rows, key=lambda n: max(map(abs, rows[n]["within_interval"])) / rows[n]["margin"]
+        )
         iv = rows[widest]["within_interval"]
         out |= {
             "verdict": "within",
             "deciding": widest,
-            "reason": f"every criterion within {margin} points (widest: {widest} "
-            f"[{iv[0]:+.2f}, {iv[1]:+.2f}])",
+            "reason": f"every criterion within its margin ({margin} points, AP {ap_margin}; "
+            f"look {look}, alpha {a:.4g}; widest: {widest} [{iv[0]:+.2f}, {iv[1]:+.2f}])",
         }
         return out
-    needs = {}
-    for name in open_:
-        r = rows[name]
-        alpha_side = alpha if abs(r["diff"]) < margin or not r["n"] else alpha / (2 * k)
-        need = objects_needed(r, margin, alpha_side)
-        per_frame = r["n"] / frames if frames and r["n"] else None
-        needs[name] = (
-            None if need is None or per_frame is None else math.ceil(need / per_frame),
-            need,
-        )
-    known = {n: v for n, v in needs.items() if v[0] is not None}
-    deciding = max(known, key=lambda n: known[n][0]) if known else open_[0]
-    frames_needed = known[deciding][0] if len(known) == len(needs) else None
+    a_next = look_alpha(alpha, look + 1)
+    needs = {n: _frames_needed(rows[n], frames, a_next, a_next / (2 * k)) for n in open_}
+    known = {n: v for n, v in needs.items() if v is not None}
+    deciding = max(known, key=known.get) if known else open_[0]
+    frames_needed = known[deciding] if len(known) == len(needs) else None
     r = rows[deciding]
     needed_text = (
-        f"about {frames_needed} frames ({known[deciding][1]} objects) would decide it"
+        f"about {frames_needed} frames would decide it at look {look + 1}"
         if frames_needed is not None
         else "no affordable number of frames would decide it at the observed rates"
     )
@@ -376,32 +253,11 @@ def decide(
         "verdict": "undecided",
         "deciding": deciding,
         "frames_needed": frames_needed,
-        "objects_needed": {n: v[1] for n, v in needs.items()},
-        "reason": f"too few objects for {len(open_)} criteria; {deciding}: {r['n']} objects, "
-        f"diff {r['diff']:+.2f} [{r['within_interval'][0]:+.2f}, "
-        f"{r['within_interval'][1]:+.2f}]; {needed_text}",
+        "reason": f"too few frames for {len(open_)} criteria; {deciding}: diff {r['diff']:+.2f} "
+        f"[{r['within_interval'][0]:+.2f}, {r['within_interval'][1]:+.2f}] on {frames} frames "
+        f"(look {look}); {needed_text}",
     }
     return out
-
-
-def guard_tables(
-    gt: Sequence[KittiObjects],
-    ref: Sequence[KittiObjects],
-    cand: Sequence[KittiObjects],
-    classes: Sequence[str] = ("Car",),
-    min_score: float = 0.0,
-    heading_tolerance_deg: float = HEADING_TOLERANCE_DEG,
-) -> dict[str, dict[str, int]]:
-    """Paired tables of every class, difficulty and criterion, keyed
-    ``"Car moderate 3d@0.70"`` (:func:`object_outcomes` of both runs)."""
-    tables = {}
-    for cls in classes:
-        a = object_outcomes(gt, ref, cls, min_score, heading_tolerance_deg)
-        b = object_outcomes(gt, cand, cls, min_score, heading_tolerance_deg)
-        for diff, per in a.items():
-            for crit, found in per.items():
-                tables[f"{cls} {diff} {crit}"] = paired_table(found, b[diff][crit])
-    return tables
 
 
 # ----------------------------------------------------------------------------- detections
@@ -452,7 +308,7 @@ def matched_differences(ref: Sequence[KittiObjects], cand: Sequence[KittiObjects
         score.append(a.score[i] - b.score[j])
         centre.append(np.linalg.norm(a.location[i] - b.location[j], axis=-1))
         dims.append(np.abs(a.dimensions[i] - b.dimensions[j]).max(axis=-1, initial=0.0))
-        heading.append(np.degrees(_wrap(a.rotation_y[i] - b.rotation_y[j])))
+        heading.append(np.degrees(wrap(a.rotation_y[i] - b.rotation_y[j])))
     matched = int(sum(len(h) for h in heading))
     flips = int(sum(np.sum(np.abs(h) > 90.0) for h in heading))
     return {
