@@ -18,8 +18,9 @@ same step is "not guarded". It applies to a run only for the same weights, expor
 int8 model (its IR's identity where the folder holds the int8 model of the same settings),
 runtime and quantizer versions, runtime, precision, int8 calibration settings and the rule's
 score threshold (:func:`rule_mismatch`); :func:`verdict_for` says which and why not, and
-:func:`precision_line` is the line ``evaluate.py`` (and ``predict``) print. Writes are atomic; a new guard run replaces the
-verdicts of the precisions it guarded and keeps the others when the model is the same.
+:func:`precision_line` is the line ``evaluate.py`` (and ``predict``) print. Writes are
+atomic; a new guard run replaces the verdicts of the precisions it guarded and keeps the
+others when the model is the same.
 Verdict files of an earlier format are not read (their rule and identity were weaker).
 """
 
