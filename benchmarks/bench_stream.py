@@ -23,7 +23,7 @@ wall-clock figures), plus the machine and its load. Export, int8 calibration and
         [--paper-frames 20] [--rounds 2] [--only 'jax f32,openvino int8'] [--batch-size 1]
         [--threads N] [--workdir W] [--live FPS] [--json OUT] [--requests 1,2]
         [--no-video] [--video-scale S] [--container mp4|avi] [--net-frames N] [--profile]
-        [--clock-ghz G]
+        [--clock-ghz G] [--track]
 
 Core accounting per row: each stage's CPU time per frame (its thread's), the XLA threads'
 (decoding; the jax runtime's network), the rest (the ONNX Runtime / OpenVINO inference
@@ -137,7 +137,13 @@ def run_stream(
     annotated = None
     if not args.no_video:
         annotated = outputs.AnnotatedVideo(out / f"annotated.{args.container}", source.fps)
-    results = outputs.KittiResults(out / "data")
+    results, track = outputs.KittiResults(out / "data"), None
+    if args.track:  # as predict --track: tracks drawn and written as KITTI tracking lines
+        from gac_jax.api.tracker import Tracker3D
+        from gac_jax.streams.tracking import KittiTrackingResults, TrackingStage
+
+        results = KittiTrackingResults(out / "tracking", "0000")
+        track = TrackingStage(Tracker3D(detector.config), source.fps or 10.0, bool(live_fps), None)
     if live_fps:
         source = sources.PacedSource(source, live_fps)
     pipeline = StreamPipeline(
@@ -150,6 +156,7 @@ def run_stream(
         report_every=0,
         draw=functools.partial(detection_picture, scale=args.video_scale),
         network_requests=detector.requests,
+        track=track,
     )
     threads = ThreadCpu()
     threads.start()
@@ -366,6 +373,7 @@ def main() -> None:
     p.add_argument("--json", type=Path)
     p.add_argument("--requests", default="1,2", help="network calls in flight, per row")
     p.add_argument("--no-video", action="store_true", help="results only")
+    p.add_argument("--track", action="store_true", help="as predict --track (the 3D tracker)")
     p.add_argument("--video-scale", type=float, default=1.0)
     p.add_argument("--container", default="mp4", choices=("mp4", "avi"))
     p.add_argument("--net-frames", type=int, default=10, help="frames of the network alone")
@@ -388,6 +396,7 @@ def main() -> None:
         f"AVX512_BF16 {flags['avx512_bf16']}, int8 dot products {flags['int8_dot']}"
     )
     video_kind = "no video" if args.no_video else f"{args.container} video x{args.video_scale:g}"
+    video_kind += ", tracking" if args.track else ""
     print(f"{budget.describe('openvino')}; output: {video_kind}")
     combos = [c for c in RUNTIME_PRECISIONS if not args.only or " ".join(c) in args.only.split(",")]
     requests = [int(r) for r in args.requests.split(",") if r]
