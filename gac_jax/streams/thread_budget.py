@@ -102,7 +102,9 @@ def xla_threads() -> int | None:
 
 def thread_settings(network=None) -> dict:
     """What the libraries run with now, read from the libraries themselves: ``opencv``
-    (``cv2.getNumThreads``), ``blas`` (threads of each BLAS threadpoolctl sees), ``xla``
+    (``cv2.getNumThreads``), ``blas`` (threads of each BLAS threadpoolctl sees), ``openmp``
+    (of each OpenMP runtime loaded, e.g. by PyTorch: a per-thread setting, as this thread
+    sees it; no stage runs OpenMP code), ``xla``
     (:func:`xla_threads`) and, for an OpenVINO ``network``
     (:class:`~gac_jax.deploy.runtimes.OnnxNetwork`), its compiled ``INFERENCE_NUM_THREADS``
     and ``NUM_STREAMS``."""
@@ -112,9 +114,12 @@ def thread_settings(network=None) -> dict:
     try:
         from threadpoolctl import threadpool_info
 
-        out["blas"] = sorted({int(i["num_threads"]) for i in threadpool_info()})
+        info = threadpool_info()
+        out["blas"] = sorted({int(i["num_threads"]) for i in info if i["user_api"] == "blas"})
+        # OpenMP's count is per thread (a stage thread starts with the default); reported only
+        out["openmp"] = sorted({int(i["num_threads"]) for i in info if i["user_api"] == "openmp"})
     except ImportError:
-        out["blas"] = None
+        out["blas"] = out["openmp"] = None
     if network is not None and getattr(network, "runtime", None) == "openvino":
         out["openvino_threads"] = int(network.compiled_property("INFERENCE_NUM_THREADS"))
         out["openvino_streams"] = int(network.compiled_property("NUM_STREAMS"))
