@@ -143,7 +143,9 @@ def run_stream(
         from gac_jax.streams.tracking import KittiTrackingResults, TrackingStage
 
         results = KittiTrackingResults(out / "tracking", "0000")
-        track = TrackingStage(Tracker3D(detector.config), source.fps or 10.0, bool(live_fps), None)
+        fps = source.fps or 10.0
+        tracker = Tracker3D(detector.config)
+        track = TrackingStage(tracker, fps, bool(live_fps), None, args.video_scale)
     if live_fps:
         source = sources.PacedSource(source, live_fps)
     pipeline = StreamPipeline(

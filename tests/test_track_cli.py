@@ -27,10 +27,10 @@ def test_track_on_a_clip_writes_a_tracking_file_and_a_video(
     """A generated clip as a KITTI tracking sequence (calibration, planes and poses found by
     themselves). Every line of ``tracking/0000.txt`` has the KITTI tracking result format (frame in
     0..4, integer id, a class, ``-1 -1``, 13 numbers); a track id keeps its class; the video
-    has the 5 frames, camera view + bird's-eye view."""
+    has the 5 frames, camera view + bird's-eye view, at ``--video-scale``'s size."""
     out = tmp_path / "out"
     argv = ["--workdir", tiny_detect3d_workdir, "--sequence", clip_sequence, "--track"]
-    argv += ["--out", out]
+    argv += ["--out", out, "--video-scale", 0.5]
     code = predict.main([str(a) for a in argv])
     stdout, err = capsys.readouterr()
     assert code == 0, err
@@ -52,7 +52,9 @@ def test_track_on_a_clip_writes_a_tracking_file_and_a_video(
     while capture.read()[0]:
         count += 1
     assert count == 5
-    assert capture.get(cv2.CAP_PROP_FRAME_WIDTH) > 621  # camera view + bird's-eye view
+    h, w = cv2.imread(str(sorted(Path(clip_sequence).glob("*.png"))[0])).shape[:2]
+    assert capture.get(cv2.CAP_PROP_FRAME_HEIGHT) == round(h / 2)  # --video-scale 0.5
+    assert capture.get(cv2.CAP_PROP_FRAME_WIDTH) > round(w / 2)  # camera view + bird's-eye view
     assert "tracking/0000.txt" in stdout
 
 

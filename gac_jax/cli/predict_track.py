@@ -92,4 +92,5 @@ def tracking_outputs(args: argparse.Namespace, source, plan, detector, poses, fp
         results = JsonlResults(plan.results)
     else:
         results = KittiTrackingResults(plan.results, sequence_name(source))
-    return results, TrackingStage(tracker, fps, args.realtime, poses)
+    scale = getattr(args, "video_scale", 1.0)
+    return results, TrackingStage(tracker, fps, args.realtime, poses, scale)

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from gac_jax import geometry
+from gac_jax.data import transforms
 from gac_jax.evaluation import viz
 from gac_jax.evaluation.detection_pictures import bev_grid_for_height
 
@@ -59,9 +60,12 @@ def _image_points(points: np.ndarray, P2: np.ndarray) -> np.ndarray:
     return np.where((depth > NEAR)[:, None], uv, np.nan)
 
 
-def draw_tracks_camera(canvas: np.ndarray, tracks, P2: np.ndarray, thickness: int = 2) -> None:
-    """Ids, trails and velocity arrows on the camera view ``canvas`` (in place)."""
-    objects = tracks.to_kitti_objects()
+def draw_tracks_camera(
+    canvas: np.ndarray, tracks, P2: np.ndarray, thickness: int = 2, objects=None
+) -> None:
+    """Ids, trails and velocity arrows on the camera view ``canvas`` (in place; ``objects``:
+    the tracks' boxes in ``canvas`` pixels, default ``tracks.to_kitti_objects()``)."""
+    objects = tracks.to_kitti_objects() if objects is None else objects
     for i, track_id in enumerate(tracks.ids.tolist()):
         color = track_color(track_id)
         trail = _image_points(tracks.trails[i], P2)
@@ -102,18 +106,28 @@ def draw_tracks_bev(canvas: np.ndarray, tracks, grid: viz.BevGrid, scale: float 
         )
 
 
-def track_picture(image: np.ndarray, P2: np.ndarray, tracks) -> np.ndarray:
+def track_picture(image: np.ndarray, P2: np.ndarray, tracks, *, scale: float = 1.0) -> np.ndarray:
     """Camera view | bird's-eye view of ``tracks`` (module doc).
 
     Args:
       image: (H, W, 3) uint8 RGB; P2: (3, 4) its projection.
+      scale: size of the picture relative to the image (< 1: the image is shrunk first and
+        the tracks drawn on the small one), as ``detection_picture``'s.
 
     Returns:
-      (H, W + Wb, 3) uint8 RGB, as :func:`~gac_jax.evaluation.detection_pictures.detection_picture`.
+      (h, w + Wb, 3) uint8 RGB with ``(h, w) = round(scale (H, W))``, as
+      :func:`~gac_jax.evaluation.detection_pictures.detection_picture`.
     """
     objects = tracks.to_kitti_objects()
+    if scale != 1.0:
+        h, w = image.shape[:2]
+        size = (max(round(h * scale), 2), max(round(w * scale), 2))
+        A = transforms.resize_affine((h, w), size)
+        image = cv2.resize(image, size[::-1], interpolation=cv2.INTER_AREA)
+        P2 = A @ np.asarray(P2, np.float64)
+        objects = objects.replace(bbox=transforms.transform_boxes(objects.bbox, A))
     camera = viz.draw_detections(image, P2, objects, show_labels=False)
-    draw_tracks_camera(camera, tracks, P2)
+    draw_tracks_camera(camera, tracks, P2, objects=objects)
     grid = bev_grid_for_height(image.shape[0])
     bev = viz.draw_bev(objects, grid=grid)
     scale = 1.0

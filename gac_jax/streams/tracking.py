@@ -40,10 +40,18 @@ class TrackingStage:
       fps: the stream's frames per second (frame times ``index / fps``).
       realtime: frame times are when each frame was read (``Frame.t_read``).
       poses: (N, 3, 4) camera -> world of frame index 0..N-1, or None.
+      scale: the annotated picture's size relative to the frame (``--video-scale``).
     """
 
-    def __init__(self, tracker: Tracker3D, fps: float, realtime: bool = False, poses=None):
-        self.tracker, self.fps, self.realtime = tracker, fps, realtime
+    def __init__(
+        self,
+        tracker: Tracker3D,
+        fps: float,
+        realtime: bool = False,
+        poses=None,
+        scale: float = 1.0,
+    ):
+        self.tracker, self.fps, self.realtime, self.scale = tracker, fps, realtime, scale
         self.poses = None if poses is None else np.asarray(poses, np.float64)
 
     def update(self, frame: Frame, detections):
@@ -58,7 +66,7 @@ class TrackingStage:
         return self.tracker.update(detections, pose=pose, timestamp=timestamp, plane=frame.plane)
 
     def draw(self, frame: Frame, tracks) -> np.ndarray:
-        return track_picture(frame.image, frame.P2, tracks)
+        return track_picture(frame.image, frame.P2, tracks, scale=self.scale)
 
 
 class KittiTrackingResults(JsonlResults):
