@@ -26,7 +26,8 @@ from machine_info import describe_machine, one_line  # noqa: E402  (benchmarks/ 
 
 from gac_jax import geometry  # noqa: E402
 from gac_jax.data.kitti import KittiObjects  # noqa: E402
-from gac_jax.evaluation.kitti_object import evaluate_detections, format_table  # noqa: E402
+from gac_jax.evaluation.ap_table import format_table  # noqa: E402
+from gac_jax.evaluation.kitti_object import evaluate_detections  # noqa: E402
 
 P2 = np.array(
     [

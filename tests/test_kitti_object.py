@@ -9,6 +9,7 @@ import pytest
 
 from gac_jax.data.kitti import KittiObjectLayout, KittiObjects, read_label, read_split
 from gac_jax.evaluation import kitti_object as ko
+from gac_jax.evaluation.ap_table import format_table
 from tests import kitti_devkit_oracle as ref
 
 
@@ -158,7 +159,7 @@ def test_result_schema_and_table():
                 assert all(
                     len(v) == 3 and all(isinstance(x, float) for x in v) for v in entry.values()
                 )
-    table = ko.format_table(res)
+    table = format_table(res)
     assert (
         "AP|R40" in table and "AP|R11" in table and "Pedestrian @ bbox 0.50, bev/3d 0.25" in table
     )

@@ -34,13 +34,9 @@ from gac_jax.cli.model_mode import add_model_mode_arguments, reject_model_mode_a
 from gac_jax.data.files import KittiFormatError, atomic_write, read_depth_png
 from gac_jax.data.io_errors import error_line, exit_code
 from gac_jax.data.kitti import KittiObjects, read_label, read_split
+from gac_jax.evaluation.ap_table import format_table, overlap_meta
 from gac_jax.evaluation.depth_metrics import DepthMetricAccumulator, format_depth_table
-from gac_jax.evaluation.kitti_object import (
-    CLASSES,
-    evaluate_detections,
-    format_table,
-    overlap_meta,
-)
+from gac_jax.evaluation.kitti_object import CLASSES, evaluate_detections
 from gac_jax.training.workdir_lock import WorkdirBusyError
 
 EXIT_INVALID_INPUT = 2
