@@ -133,7 +133,8 @@ def run_stream(
     from gac_jax.streams import outputs, sources
     from gac_jax.streams.pipeline import StreamPipeline
 
-    source = sources.VideoSource(video, sources.load_projection(calib), str(calib))
+    P2 = sources.load_projection(calib)
+    source = sources.VideoSource(video, P2, str(calib), decode_threads=args.decode_threads)
     annotated = None
     if not args.no_video:
         annotated = outputs.AnnotatedVideo(out / f"annotated.{args.container}", source.fps)
@@ -378,6 +379,12 @@ def main() -> None:
     p.add_argument("--track", action="store_true", help="as predict --track (the 3D tracker)")
     p.add_argument("--video-scale", type=float, default=1.0)
     p.add_argument("--container", default="mp4", choices=("mp4", "avi"))
+    p.add_argument(
+        "--decode-threads",
+        type=int,
+        default=1,
+        help="FFmpeg decoder threads (default 1, the stream's budget; 0: FFmpeg's choice)",
+    )
     p.add_argument("--net-frames", type=int, default=10, help="frames of the network alone")
     p.add_argument("--profile", action="store_true", help="OpenVINO per-layer counters")
     p.add_argument(
@@ -386,6 +393,7 @@ def main() -> None:
         help="the cores' clock for the peak (default: /proc/cpuinfo's, a VM's nominal clock)",
     )
     args = p.parse_args()
+    args.decode_threads = args.decode_threads or None
 
     sources.quiet_video_backend()
     budget = plan_thread_budget(args.threads)

@@ -92,6 +92,40 @@ def test_two_calls_in_flight_give_the_synchronous_detections(
     assert sorted(p.name for p in (tmp_path / "async").iterdir()) == ["detections.jsonl"]
 
 
+def test_the_video_decoder_runs_in_the_budget(workdir, clip, tmp_path, capsys, monkeypatch):
+    """A video stream decodes with the budget's one FFmpeg thread (read inside the stream's
+    read stage); the parameter reaches FFmpeg (2 asked: 2 reported)."""
+    images = sorted(clip.glob("*.png"))[:3]
+    first = cv2.imread(str(images[0]))
+    h, w = first.shape[:2]
+    video = tmp_path / "clip.mp4"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (w, h))
+    for path in images:
+        writer.write(cv2.imread(str(path)))
+    writer.release()
+    calib = clip.parents[1] / "calib" / f"{clip.name}.txt"
+    P2 = sources.load_projection(calib)
+    asked = sources.VideoSource(video, P2, str(calib), decode_threads=2)
+    assert thread_budget.thread_settings(source=asked)["decoder"] == 2
+    asked.close()
+    seen = []
+    read = sources.VideoSource.read
+
+    def read_and_look(self):
+        seen.append((threading.current_thread().name, thread_budget.thread_settings(source=self)))
+        return read(self)
+
+    monkeypatch.setattr(sources.VideoSource, "read", read_and_look)
+    argv = ["--workdir", workdir, "--video", video, "--calib", calib, "--out", tmp_path / "o"]
+    code = predict.main([str(a) for a in [*argv, "--no-video"]])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "decoder 1 per stage" in out
+    in_stream = [s for name, s in seen if name == "gac-stream-read"]
+    assert len(in_stream) == 4  # 3 frames and the end
+    assert {s["decoder"] for s in in_stream} == {1}
+
+
 def test_a_smaller_annotated_video(workdir, clip, tmp_path, capsys):
     """``--video-scale 0.5``: the annotated frames are half the clip's size (camera view and
     the bird's-eye view of that height)."""

@@ -215,8 +215,9 @@ def clip_sequence(index: int) -> Path:
     return Path(root) / "training" / "image_02" / f"{index:04d}"
 
 
-def open_source(args: argparse.Namespace):
-    """The frame source the arguments name (checks input and calibration; nothing loaded)."""
+def open_source(args: argparse.Namespace, decode_threads: int | None = None):
+    """The frame source the arguments name (checks input and calibration; nothing loaded);
+    a video decodes with ``decode_threads`` (the stream's thread budget)."""
     from gac_jax.data.kitti import read_plane
     from gac_jax.streams import sources
 
@@ -233,7 +234,7 @@ def open_source(args: argparse.Namespace):
             raise KittiFormatError(args.calib, "calibration file not found")
         P2 = sources.load_projection(args.calib, args.calib_camera)
         if kind == "video":
-            source = sources.VideoSource(args.video, P2, args.calib, plane)
+            source = sources.VideoSource(args.video, P2, args.calib, plane, decode_threads)
         else:
             source = sources.CameraSource(args.camera, P2, args.calib, plane)
         if args.fps is not None:
@@ -379,9 +380,9 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
         raise KittiFormatError(workdir, "workdir not found")
     if args.out_video is not None:
         outputs.check_video_path(args.out_video)
-    source = open_source(args)
-    video = results = None
     budget = stream_thread_budget(args)
+    source = open_source(args, budget.host_threads)
+    video = results = None
     try:
         plan = plan_outputs(args, source)
         poses = predict_track.stream_poses(args, source) if args.track else None

@@ -145,20 +145,45 @@ def consistency_objective(
     y = np.concatenate([np.zeros_like(h)] * 4 + [-h] * 4, axis=1) + loc[:, 1:2]
     loc_x, loc_z = loc[:, 0:1], loc[:, 2:3]
 
+    gathered: dict = {}  # the last rows' yaw-independent arrays (rows change rarely)
+
     def iou(rows: np.ndarray, ry: np.ndarray) -> np.ndarray:
+        if gathered.get("rows") is None or not np.array_equal(gathered["rows"], rows):
+            gathered.update(
+                rows=rows.copy(),
+                x=x[rows],
+                z=z[rows],
+                y=y[rows],
+                loc_x=loc_x[rows],
+                loc_z=loc_z[rows],
+                box=boxes2d[rows],
+                area=area2d[rows],
+            )
+        g = gathered
         c, s = np.cos(ry)[:, None], np.sin(ry)[:, None]
-        xr, zr = x[rows], z[rows]
+        xr, zr = g["x"], g["z"]
         corners = np.stack(
-            [(c * xr + s * zr) + loc_x[rows], y[rows], (c * zr - s * xr) + loc_z[rows]], axis=-1
+            [(c * xr + s * zr) + g["loc_x"], g["y"], (c * zr - s * xr) + g["loc_z"]], axis=-1
         )
         hom = corners @ P[:, :3].T + P[:, 3]  # (M, 8, 3)
         depth = hom[..., 2]
-        if np.all(depth > NEAR):
+        if (depth > NEAR).all():
             uv = hom[..., :2] / depth[..., None]
             boxes = np.concatenate([uv.min(axis=1), uv.max(axis=1)], axis=1)
         else:
             boxes = geometry.box2d_from_corners(corners, P, near=NEAR)
-        return paired_iou(boxes2d[rows], np.clip(boxes, 0.0, bounds), area2d[rows])
+        # paired_iou(box, clip(boxes, 0, bounds), area) with the same float operations
+        # (clip as maximum/minimum: equal, NaN included) and fewer calls
+        b = np.minimum(np.maximum(boxes, 0.0), bounds)
+        a = g["box"]
+        iw = np.minimum(a[:, 2], b[:, 2]) - np.maximum(a[:, 0], b[:, 0])
+        ih = np.minimum(a[:, 3], b[:, 3]) - np.maximum(a[:, 1], b[:, 1])
+        inter = np.maximum(iw, 0.0) * np.maximum(ih, 0.0)
+        area_b = np.maximum(b[:, 2] - b[:, 0], 0.0) * np.maximum(b[:, 3] - b[:, 1], 0.0)
+        union = g["area"] + area_b - inter
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = inter / union
+        return np.where((union > 0) & np.isfinite(out), out, 0.0)
 
     return iou
 

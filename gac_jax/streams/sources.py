@@ -106,15 +106,32 @@ class VideoSource:
       path: the video (any container and codec OpenCV's FFmpeg reads).
       P2: (3, 4) its calibration, read from ``calib`` (named in errors).
       plane: (4,) ground plane of every frame, or None.
+      decode_threads: FFmpeg's decoding threads (a stream's thread budget: 1, the read stage
+        is a thread of its own); None: FFmpeg's own choice (every core). A video FFmpeg
+        cannot open is tried with OpenCV's other backends, at their own thread count.
     """
 
     live = False
 
-    def __init__(self, path, P2: np.ndarray, calib: str, plane: np.ndarray | None = None):
+    def __init__(
+        self,
+        path,
+        P2: np.ndarray,
+        calib: str,
+        plane: np.ndarray | None = None,
+        decode_threads: int | None = None,
+    ):
         self.name = os.fspath(path)
         if not Path(path).is_file():
             raise KittiFormatError(path, "video not found")
-        self._capture = cv2.VideoCapture(self.name)
+        self._capture = None
+        if decode_threads is not None:
+            capture = cv2.VideoCapture(
+                self.name, cv2.CAP_FFMPEG, [cv2.CAP_PROP_N_THREADS, int(decode_threads)]
+            )
+            self._capture = capture if capture.isOpened() else None
+        if self._capture is None:
+            self._capture = cv2.VideoCapture(self.name)
         if not self._capture.isOpened():
             raise KittiFormatError(
                 path, "cannot be opened as a video (damaged, truncated or not a video file)"
@@ -133,6 +150,12 @@ class VideoSource:
         self.size = first.shape[:2]
         check_calibration(self.P2, self.size, calib, self.name)
         self._pending: tuple[np.ndarray, float] | None = (first, t0)
+
+    @property
+    def decode_threads(self) -> int | None:
+        """The decoder's threads as OpenCV reports them (None: the backend does not say)."""
+        n = int(self._capture.get(cv2.CAP_PROP_N_THREADS))
+        return n if n > 0 else None
 
     def _decode(self) -> np.ndarray | None:
         ok, bgr = self._capture.read()

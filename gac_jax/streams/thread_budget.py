@@ -10,6 +10,9 @@ network is worth parallelising inside: the host stages already run side by side,
   OpenVINO's throughput hint splits them into that many streams (2 cores, 2 requests: two
   streams of one thread), one per call in flight;
 * OpenCV: ``cv2.setNumThreads(host_threads)``;
+* a video file's decoder (FFmpeg): ``host_threads`` (FFmpeg's own default is every core,
+  which on two cores costs ~20 % more CPU per frame for nothing: the read stage already runs
+  beside the others);
 * BLAS (numpy's OpenBLAS, and OpenCV's own): ``threadpoolctl`` limits, when it is installed;
 * XLA (the jax runtime's network, and every runtime's decoding and top-k): its CPU thread
   pool is sized when JAX starts (every usable core, or ``--threads``) and is not changed here;
@@ -38,8 +41,8 @@ class ThreadBudget:
 
     Attributes:
       cores: usable cores; network_threads: ONNX Runtime / OpenVINO inference threads;
-      requests: network calls in flight (OpenVINO streams); host_threads: OpenCV and BLAS
-      threads (each host stage is already a thread of its own).
+      requests: network calls in flight (OpenVINO streams); host_threads: OpenCV, BLAS and
+      video decoder threads (each host stage is already a thread of its own).
     """
 
     cores: int
@@ -55,7 +58,7 @@ class ThreadBudget:
             network = f"network {self.network_threads} {runtime} threads"
             if self.requests > 1:
                 network += f" in {self.requests} streams ({self.requests} calls in flight)"
-        return f"threads: {network}; OpenCV and BLAS {self.host_threads} per stage"
+        return f"threads: {network}; OpenCV, BLAS and decoder {self.host_threads} per stage"
 
 
 def plan_thread_budget(
@@ -100,14 +103,15 @@ def xla_threads() -> int | None:
     return count
 
 
-def thread_settings(network=None) -> dict:
+def thread_settings(network=None, source=None) -> dict:
     """What the libraries run with now, read from the libraries themselves: ``opencv``
     (``cv2.getNumThreads``), ``blas`` (threads of each BLAS threadpoolctl sees), ``openmp``
     (of each OpenMP runtime loaded, e.g. by PyTorch: a per-thread setting, as this thread
     sees it; no stage runs OpenMP code), ``xla``
-    (:func:`xla_threads`) and, for an OpenVINO ``network``
-    (:class:`~gac_jax.deploy.runtimes.OnnxNetwork`), its compiled ``INFERENCE_NUM_THREADS``
-    and ``NUM_STREAMS``."""
+    (:func:`xla_threads`), for an OpenVINO ``network``
+    (:class:`~gac_jax.deploy.runtimes.OnnxNetwork`) its compiled ``INFERENCE_NUM_THREADS``
+    and ``NUM_STREAMS``, and for a video ``source``
+    (:class:`~gac_jax.streams.sources.VideoSource`) its ``decoder`` threads."""
     import cv2
 
     out: dict = {"opencv": cv2.getNumThreads(), "xla": xla_threads()}
@@ -123,4 +127,6 @@ def thread_settings(network=None) -> dict:
     if network is not None and getattr(network, "runtime", None) == "openvino":
         out["openvino_threads"] = int(network.compiled_property("INFERENCE_NUM_THREADS"))
         out["openvino_streams"] = int(network.compiled_property("NUM_STREAMS"))
+    if source is not None and hasattr(source, "decode_threads"):
+        out["decoder"] = source.decode_threads
     return out
