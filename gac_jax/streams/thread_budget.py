@@ -10,9 +10,9 @@ network is worth parallelising inside: the host stages already run side by side,
   OpenVINO's throughput hint splits them into that many streams (2 cores, 2 requests: two
   streams of one thread), one per call in flight;
 * OpenCV: ``cv2.setNumThreads(host_threads)``;
-* a video file's decoder (FFmpeg): ``host_threads`` (FFmpeg's own default is every core,
-  which on two cores costs ~20 % more CPU per frame for nothing: the read stage already runs
-  beside the others);
+* a video file's decoder (FFmpeg): ``host_threads`` (FFmpeg's own default is every core; on
+  two cores its threads' hand-offs cost about 10 % more CPU per frame, which a stream's other
+  stages would have used: ``benchmarks/bench_video_decode.py``);
 * BLAS (numpy's OpenBLAS, and OpenCV's own): ``threadpoolctl`` limits, when it is installed;
 * XLA (the jax runtime's network, and every runtime's decoding and top-k): its CPU thread
   pool is sized when JAX starts (every usable core, or ``--threads``) and is not changed here;
