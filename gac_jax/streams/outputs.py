@@ -179,6 +179,8 @@ def _write_failed(path: Path) -> OSError:
 class KittiResults:
     """``folder/<frame id>.txt``: KITTI result lines (with scores) per frame, atomically."""
 
+    needs_record = False  # the objects are all it writes: the pipeline skips ``to_dict()``
+
     def __init__(self, folder: str | os.PathLike):
         self.folder = Path(folder)
         self.frames = 0
