@@ -29,7 +29,9 @@ Core accounting per row: each stage's CPU time per frame (its thread's), the XLA
 (decoding; the jax runtime's network), the rest (the ONNX Runtime / OpenVINO inference
 threads and the video encoder's own threads: process CPU minus the stage and XLA threads),
 the total core-ms per frame against wall x cores, and the stream's rate as a fraction of the
-network-alone rate measured in the same run (``infer`` on one prepared frame after another).
+network-alone rate measured in the same run (``infer`` on ``--net-frames`` prepared frames one
+after another, before each round; the median over rounds: one measurement of a few frames
+varied by 10-15 % between runs on a 2-core VM).
 Per config a summary: the network's MACs (counted from the exported ONNX graph,
 :mod:`gac_jax.deploy.graph_macs`), its achieved MAC/s and the share of the CPU's peak for
 that precision (an estimate from the instruction set and clock: benchmarks/core_accounting.py);
@@ -246,7 +248,10 @@ def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
     from gac_jax.streams.rates import percentile_ms
 
     t0 = time.perf_counter()
-    results = [run_stream(detector, video, calib, out / str(r), args) for r in range(args.rounds)]
+    results, alone = [], []
+    for r in range(args.rounds):  # the network alone before each round: the same conditions
+        alone.append(network_alone(detector, video, calib, args.net_frames))
+        results.append(run_stream(detector, video, calib, out / str(r), args))
     latencies = [x for r in results for x in r["latencies"]]
 
     def median_of(key):
@@ -277,7 +282,8 @@ def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
             "latency_median_ms": percentile_ms(live["latencies"], 50),
             "latency_p95_ms": percentile_ms(live["latencies"], 95),
         }
-    row.update(network_alone(detector, video, calib, args.net_frames))
+    row.update({k: float(np.median([a[k] for a in alone])) for k in alone[0]})
+    row["infer_ms_rounds"] = [a["infer_ms"] for a in alone]
     row["stream_over_network"] = row["fps_median"] * row["infer_ms"] / 1e3
     # on a machine shared with other work: the share of the process's CPU the network takes
     row["network_cpu_share"] = row["infer_cpu_ms"] / row["cpu_ms_per_frame"]
@@ -385,7 +391,9 @@ def main() -> None:
         default=1,
         help="FFmpeg decoder threads (default 1, the stream's budget; 0: FFmpeg's choice)",
     )
-    p.add_argument("--net-frames", type=int, default=10, help="frames of the network alone")
+    p.add_argument(
+        "--net-frames", type=int, default=30, help="frames of the network alone, per round"
+    )
     p.add_argument("--profile", action="store_true", help="OpenVINO per-layer counters")
     p.add_argument(
         "--clock-ghz",
