@@ -163,6 +163,21 @@ def test_batch_equals_one_by_one_and_handles_odd_boxes():
         hc.optimize_rotation_y_batch(boxes, loc[:2], dims, ry, P2, SIZE)
 
 
+def test_objective_equals_consistency_iou_for_any_rows_in_any_order():
+    """The objective keeps the last rows' arrays: calls with other rows (fewer, repeated,
+    reordered, a box straddling the near plane) still give ``consistency_iou`` bit for bit."""
+    rng = np.random.default_rng(3)
+    loc, dims, ry = _random_objects(rng, 8)
+    loc[2] = [1.0, 1.6, 1.0]  # straddles the near plane
+    boxes = hc.projected_box(loc, dims, ry + 0.2, P2, SIZE) + rng.normal(0, 2, (8, 4))
+    objective = hc.consistency_objective(boxes, loc, dims, P2, SIZE)
+    all_rows = np.arange(8)
+    for rows in (all_rows, all_rows[3:], np.r_[all_rows, all_rows], all_rows[::-1], all_rows):
+        yaw = rng.uniform(-np.pi, np.pi, len(rows))
+        want = hc.consistency_iou(boxes[rows], loc[rows], dims[rows], yaw, P2, SIZE)
+        np.testing.assert_array_equal(objective(rows, yaw), want)
+
+
 def test_recovers_kitti_yaw(kitti_object_root):
     """Real labels: 2D box = projection of the true 3D box, yaw perturbed by +-0.3 rad."""
     src = KittiObjectSource(kitti_object_root, "labeled")
