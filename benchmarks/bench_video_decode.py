@@ -2,10 +2,10 @@
 FFmpeg's own thread count (every core).
 
 The stream's source (``gac_jax.streams.sources.VideoSource``) decodes an MPEG-4 video of the
-KITTI sample frames (1242x375, as ``bench_stream.py`` makes it) to RGB, frame after frame, with a stream's
-OpenCV setting (one thread);
-each setting is timed in alternation over ``--rounds`` passes: the process CPU time per frame
-(the decoder's threads included) and the wall time per frame. Reported: medians over rounds,
+KITTI sample frames (1242x375, as ``bench_stream.py`` makes it) to RGB, frame after frame, with
+a stream's OpenCV setting (one thread); each setting is timed in alternation over ``--rounds``
+passes: the process CPU time per frame (the decoder's threads included) and the wall time per
+frame. Reported: medians over rounds,
 and the machine. A stream's read stage runs beside four other stages on the same cores, so
 what counts there is the CPU time: with one thread the decoding costs the CPU it needs, with
 several the threads' hand-offs add to it.
