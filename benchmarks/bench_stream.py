@@ -31,7 +31,9 @@ threads and the video encoder's own threads: process CPU minus the stage and XLA
 the total core-ms per frame against wall x cores, and the stream's rate as a fraction of the
 network-alone rate measured in the same run (``infer`` on ``--net-frames`` prepared frames one
 after another, before each round; the median over rounds: one measurement of a few frames
-varied by 10-15 % between runs on a 2-core VM).
+varied by 10-15 % between runs on a 2-core VM), and the bound the host stages set: when the
+network alone keeps every core busy (N core-ms per frame), a stream whose host stages take H
+core-ms per frame reaches at most N / (N + H) of the network-alone rate.
 Per config a summary: the network's MACs (counted from the exported ONNX graph,
 :mod:`gac_jax.deploy.graph_macs`), its achieved MAC/s and the share of the CPU's peak for
 that precision (an estimate from the instruction set and clock: benchmarks/core_accounting.py);
@@ -320,6 +322,14 @@ def print_row(label: str, row: dict) -> None:
         f"    network alone {row['infer_cpu_ms']:.1f} core-ms per frame = "
         f"{row['network_cpu_share']:.0%} of the stream's core-ms (a CPU-bound stream's rate "
         "as a fraction of the network-alone rate)",
+        flush=True,
+    )
+    host = sum(v for k, v in row["stage_cpu_ms"].items() if k != "network")
+    net = row["infer_cpu_ms"]
+    print(
+        f"    host stages (read, prepare, finish + draw, write) H {host:.1f} core-ms per frame; "
+        f"when the network alone (N) keeps every core busy, a stream reaches at most "
+        f"N / (N + H) = {net / (net + host):.0%} of its rate",
         flush=True,
     )
     if "live" in row:
