@@ -197,6 +197,13 @@ class TrackedObjects:
         return int(self.ids.shape[0])
 
     def __getitem__(self, i: int) -> TrackedObject:
+        return self._object(i, self.alpha, self.speeds)
+
+    def __iter__(self) -> Iterator[TrackedObject]:
+        alpha, speeds = self.alpha, self.speeds  # once for all tracks, not once per track
+        return (self._object(i, alpha, speeds) for i in range(len(self)))
+
+    def _object(self, i: int, alpha: np.ndarray, speeds: np.ndarray) -> TrackedObject:
         return TrackedObject(
             track_id=int(self.ids[i]),
             name=str(self.names[i]),
@@ -205,15 +212,12 @@ class TrackedObjects:
             dimensions=tuple(float(v) for v in self.dimensions[i]),
             location=tuple(float(v) for v in self.locations[i]),
             rotation_y=float(self.rotation_y[i]),
-            alpha=float(self.alpha[i]),
+            alpha=float(alpha[i]),
             velocity=tuple(float(v) for v in self.velocities[i]),
-            speed=float(self.speeds[i]),
+            speed=float(speeds[i]),
             age=int(self.ages[i]),
             hits=int(self.hits[i]),
         )
-
-    def __iter__(self) -> Iterator[TrackedObject]:
-        return (self[i] for i in range(len(self)))
 
     def __repr__(self) -> str:
         return f"TrackedObjects({len(self)} tracks; ids {self.ids.tolist()})"
