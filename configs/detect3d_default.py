@@ -47,6 +47,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.height = 160
     c.data.width = 720
     c.data.reproject_boxes = False  # 2D targets = labelled (visible) boxes, as evaluated
+    # other cameras' tone curves, white balance, blur, noise and JPEG (data/camera_effects.py),
+    # besides the reference's photometric distortion: for frames of real cameras
+    c.data.camera_effects = True
     c.data.batch_size = 8
     c.data.num_workers = 2
     c.data.eval_batch_size = 8

@@ -121,7 +121,9 @@ def test_the_plane_meets_the_rendered_road(dataset):
         err = np.abs(rendered[road] - z[road]) / z[road]
         if road.mean() > 0.5 and np.median(err) < 0.01:  # a car right in front hides the road
             checked += 1
-        assert np.percentile(err, 25) < 0.01, (i, np.median(err))
+        # the road where it shows; where something stands on it, nearer than the road
+        hidden = rendered[road] < z[road] * 0.99
+        assert np.all(err[~hidden] < 0.01) and np.all(hidden | (err < 0.01)), (i, np.median(err))
     assert checked >= N // 2
 
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from gac_jax.builders.datasets import plane_ops
 from gac_jax.data import transforms
+from gac_jax.data.camera_effects import CameraEffects
 from gac_jax.data.loader import Loader
 from gac_jax.data.sources import open_object_source
 from gac_jax.detection.anchor_priors import load_or_compute_priors, prior_frame_from_objects
@@ -64,6 +65,8 @@ def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
         transforms.Resize(d.height, calibration=d.get("resize_calibration", "grid")),
         transforms.CropOrPadWidth(d.width),
     ]
+    if d.get("camera_effects", False):  # absent in older run folders
+        ops.append(CameraEffects())
     if d.photometric:
         ops.append(transforms.PhotometricDistort())
     if d.flip_prob > 0:

@@ -154,8 +154,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--overwrite", action="store_true", help="replace a dataset made with other arguments"
     )
+    p.add_argument(
+        "--shard",
+        type=_shard_arg,
+        default=None,
+        metavar="K/N",
+        help="frames only: write the K-th of N equal frame ranges (K = 0..N-1) into --out; N "
+        "shards run anywhere (a job array, one machine each) into one folder give the bytes "
+        "of one run, and the last to finish completes the dataset",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
+
+
+def _shard_arg(text: str) -> tuple[int, int]:
+    k, sep, n = text.partition("/")
+    try:
+        k_i, n_i = int(k), int(n)
+    except ValueError:
+        k_i = n_i = -1
+    if not sep or n_i < 1 or not 0 <= k_i < n_i:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected K/N with 0 <= K < N, e.g. 0/4")
+    return k_i, n_i
 
 
 def _check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
@@ -166,6 +186,8 @@ def _check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
         if args.num is None:
             parser.error("give --num N (frames) or --sequences N --frames-per-sequence F (clips)")
         return
+    if args.shard is not None:
+        parser.error("--shard is for frames (--num N), not clips")
     if args.num is not None:
         parser.error("--num (frames) and --sequences (clips) exclude each other")
     if args.sequences is None or args.frames_per_sequence is None:
@@ -249,10 +271,19 @@ def main(argv: list[str] | None = None) -> int:
             workers=args.workers,
             overwrite=args.overwrite,
             progress=not args.quiet,
+            shard=args.shard,
         ),
     )
     if result is None:
         return took
+    if args.shard is not None:
+        k, n = args.shard
+        state = "complete" if result.complete else "not complete yet (other shards to come)"
+        print(
+            f"{result.root}: shard {k}/{n}: wrote {result.generated} frames in {took:.1f} s; "
+            f"the dataset of {result.num_frames} frames is {state}"
+        )
+        return 0
     if result.generated == 0:
         print(f"{result.root}: complete dataset of {result.num_frames} frames already there")
     else:

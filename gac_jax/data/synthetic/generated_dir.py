@@ -101,16 +101,20 @@ def _diff(have, want) -> str:
     return ", ".join(f"{k}: {have.get(k)!r} there, {want.get(k)!r} asked" for k in keys)
 
 
-def start_writing(root: Path, want: dict, done_name: str, marker_name: str, owned) -> None:
+def start_writing(
+    root: Path, want: dict, done_name: str, marker_name: str, owned, clean: bool = True
+) -> None:
     """Marks ``root`` as being written (``marker_name`` holds ``want``; ``done_name`` goes
-    until everything is back) and deletes an interrupted run's temporary files."""
+    until everything is back) and deletes an interrupted run's temporary files (unless
+    ``clean`` is False: other writers may be at work in ``root``)."""
     root.mkdir(parents=True, exist_ok=True)
     if not os.access(root, os.W_OK):
         raise PermissionError(f"{root}: directory is not writable")
     with files.atomic_write(root / marker_name) as f:
         json.dump(want, f, indent=1)
     (root / done_name).unlink(missing_ok=True)  # incomplete until everything is back
-    remove_temporaries(root, owned)
+    if clean:
+        remove_temporaries(root, owned)
 
 
 def finish_writing(root: Path, want: dict, done_name: str, marker_name: str) -> None:

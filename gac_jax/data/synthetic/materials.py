@@ -162,15 +162,17 @@ def textured_faces(solid: shapes.Solid, face: np.ndarray, local: np.ndarray, dep
             grain = 1.0 + 0.08 * lookup("fine", x, z, 30.0) * fade[sel]
             base[sel] = base[sel] * (grout * grain)[:, None]
         elif code == shapes.FOLIAGE:
-            leaf = lookup("medium", x + z, y, 5.0) + 0.6 * lookup("fine", z - x, y, 14.0)
-            base[sel] = base[sel] * np.clip(0.8 + 0.25 * leaf, 0.35, 1.4)[:, None]
+            leaf = lookup("medium", x + z, y, 5.0) + 0.8 * lookup("fine", z - x, y, 14.0)
+            leaf += 0.6 * lookup("fine", x - z, y, 40.0) * fade[sel]
+            base[sel] = base[sel] * np.clip(0.75 + 0.4 * leaf, 0.15, 1.7)[:, None]
         elif code == shapes.ROUGH:
             base[sel] = (
                 base[sel] * (1.0 + 0.12 * lookup("fine", x + z, y, 40.0) * fade[sel])[:, None]
             )
         elif code == shapes.GLASS:
-            # sky reflected in the upper part of windows
-            base[sel] = base[sel] + np.float32(0.06) * np.clip(-y - 1.0, 0.0, 1.0)[:, None]
+            base[sel] = _glass(solid.params, x, y, z, base[sel])
+        elif code == shapes.CARSIDE:
+            base[sel] = _car_side(solid.params, x, y, base[sel])
         elif code in (shapes.HEADLIGHTS, shapes.TAILLIGHTS):
             base[sel] = _lamps(solid.params, code, y, z, base[sel])
     return base
@@ -193,7 +195,18 @@ def _facade(params, face, x, y, z, base, fade):
     fa, fh = a - col, b - row
     upper = height > 2.6  # no windows on the ground floor
     inside = (np.abs(fa - 0.5) < win_w / 2) & (np.abs(fh - 0.55) < win_h / 2) & upper
-    out = base * (1.0 + 0.06 * lookup("medium", along, height, 8.0) * fade)[:, None]
+    amp = params[10] if len(params) > 10 else 0.06
+    grain = lookup("medium", along, height, 8.0) + 0.5 * lookup("fine", height, along, 30.0)
+    stain = lookup("medium", along * 0.2, height * 0.05, 4.0)  # vertical weathering streaks
+    out = base * (1.0 + amp * grain * fade + 0.5 * amp * stain)[:, None]
+    if len(params) > 11 and params[11] > 0:  # brick courses (7.5 cm), bricks 24 cm long
+        course = np.floor(height * np.float32(1 / 0.075))
+        bx = np.mod(along * np.float32(1 / 0.24) + 0.5 * np.mod(course, 2), 1.0)
+        by = np.mod(height * np.float32(1 / 0.075), 1.0)
+        mortar = (np.minimum(bx, 1 - bx) < 0.05) | (np.minimum(by, 1 - by) < 0.1)
+        out[mortar] *= np.float32(1.0) - np.float32(0.3) * fade[mortar, None]
+        tint = hash01(np.floor(along * np.float32(1 / 0.24)), course, int(salt) + 1)
+        out *= (0.85 + 0.3 * tint)[:, None]
     ledge = (np.abs(fh - (0.55 - win_h / 2)) < 0.04 / floor_h) & upper
     out[ledge] *= 0.8
     plinth = height < 0.4
@@ -224,4 +237,41 @@ def _lamps(params, code, y, z, base):
         out[band & side] = (0.7, 0.05, 0.04)
         plate = (y > top + 0.17) & (y < top + 0.28) & (np.abs(z) < 0.28 * half_w)
         out[plate] = (0.85, 0.85, 0.8)
+    return out
+
+
+SKY_REFLECTION = np.array([0.62, 0.7, 0.8], np.float32)
+
+
+def _glass(params, x, y, z, base):
+    """Car windows (object frame): dark glass that mirrors the sky, more so towards the top.
+
+    ``params``: share of the sky reflected, cabin top y and bottom y. A diagonal streak
+    pattern along the glass breaks up the reflection like trees and buildings mirrored in it.
+    """
+    if not params:
+        return base + np.float32(0.06) * np.clip(-y - 1.0, 0.0, 1.0)[:, None]
+    reflect, top, bottom = params[:3]
+    up = np.clip((bottom - y) / max(bottom - top, 1e-3), 0.0, 1.0)  # 0 at the base, 1 at the top
+    streak = 0.5 + 0.5 * np.sin(3.0 * (x + z) + 9.0 * y)
+    k = (np.float32(reflect) * (0.35 + 0.65 * up) * (0.6 + 0.4 * streak)).astype(np.float32)
+    return base * (1.0 - k)[:, None] + SKY_REFLECTION * k[:, None]
+
+
+def _car_side(params, x, y, base):
+    """A car body's side (object frame): dark wheel arches, door seams, a darker sill.
+
+    ``params``: front/rear face tops, half width, front and rear wheel x, wheel radius,
+    sill y, belt y, door seam x positions.
+    """
+    _, _, _, x_front, x_rear, r, sill, belt, door0, door1 = params[:10]
+    out = base * (1.0 + 0.18 * np.clip((sill - y) / max(sill - belt, 1e-3), 0.0, 1.0))[:, None]
+    rocker = y > sill - 0.22 * (sill - belt)
+    out[rocker] *= 0.78
+    for xw in (x_front, x_rear):
+        arch = (x - xw) ** 2 + (y + r) ** 2 < (1.18 * r) ** 2
+        out[arch] = (0.03, 0.03, 0.035)
+    upper = y < sill - 0.15 * (sill - belt)
+    for xd in (door0, door1):
+        out[(np.abs(x - xd) < 0.012) & upper] *= 0.55
     return out

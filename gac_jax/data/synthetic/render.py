@@ -270,13 +270,20 @@ class _Canvas:
         self.image[rr, cc] = col * np.float32(light)
 
     def shadows(self) -> None:
-        """Soft-edged shadows of the road users on the surface they stand on."""
+        """Shadows on the ground and sidewalks: soft-edged ones of the road users, and the
+        exact ones of the roadside's solids (buildings, trees, poles, barriers)."""
         scene, cam = self.scene, self.cam
-        if scene.shadow <= 0 or not scene.objects:
+        if scene.shadow <= 0:
             return
         sun_road = scene.sun @ scene.road_rotation
         H, W = cam.size
         mask = np.zeros((H, W), np.float32)
+        for solid in scene.background:
+            hull = ground_shadow(
+                solid.vertices, scene.sun, scene.ground_normal, scene.camera_height, cam.P
+            )
+            if hull is not None:
+                cv2.fillConvexPoly(mask, hull, 1.0, lineType=cv2.LINE_AA, shift=2)
         for obj in scene.objects:
             foot = scene.to_road(obj.corners()[:4])
             foot[:, 1] = obj.support_y
@@ -294,6 +301,57 @@ class _Canvas:
             cv2.fillConvexPoly(mask, hull, 1.0, lineType=cv2.LINE_AA, shift=2)
         receivers = (self.kind == GROUND) | (self.kind == RECEIVER)
         self.image *= (1.0 - scene.shadow * mask * receivers)[:, :, None]
+
+
+MIN_CASTER_HEIGHT = 0.3  # metres: lower solids (kerbs, sidewalk slabs) cast no shadow
+
+
+def ground_shadow(vertices, sun, normal, height, P) -> np.ndarray | None:
+    """The image polygon of a convex solid's shadow on the ground plane, or None.
+
+    The shadow of a convex solid on a plane is the convex hull of its vertices moved
+    along the light, ``X - k sun`` with ``n . (X - k sun) = height`` (camera frame:
+    ``sun`` (3,) towards the sun, ``n`` the ground's downward unit normal); vertices below
+    the ground (foundations) are moved straight up onto it. The hull is
+    clipped to the half-space in front of the camera (``z >= NEAR``) before projection.
+
+    Returns:
+      (K, 1, 2) int32 hull in pixel units x 4 (``cv2.fillConvexPoly(..., shift=2)``), or
+      None for a solid lower than MIN_CASTER_HEIGHT, under a sun at the horizon, or a
+      shadow wholly behind the camera.
+    """
+    v = np.asarray(vertices, np.float64)
+    above = height - v @ normal  # height of each vertex above the ground
+    n_sun = float(normal @ sun)
+    if above.max() < MIN_CASTER_HEIGHT or n_sun > -0.05:
+        return None
+    k = -np.maximum(above, 0.0) / n_sun
+    pts = v - k[:, None] * sun[None, :]
+    below = above < 0  # (foundations under the ground: straight up onto it)
+    pts[below] = v[below] + above[below, None] * normal[None, :]
+    # the hull in the plane, in order: 2D hull of the points in plane coordinates
+    e1 = np.cross(normal, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    hull = cv2.convexHull(np.stack([pts @ e1, pts @ e2], 1).astype(np.float32), returnPoints=False)
+    poly = _clip_near(pts[hull[:, 0]], NEAR)
+    if len(poly) < 3:
+        return None
+    uv, _ = project(poly, P)
+    return np.round(uv * 4).astype(np.int32).reshape(-1, 1, 2)
+
+
+def _clip_near(poly: np.ndarray, near: float) -> np.ndarray:
+    """Clips a convex polygon (K, 3) (camera frame, in order) to ``z >= near``."""
+    out = []
+    for i in range(len(poly)):
+        a, b = poly[i], poly[(i + 1) % len(poly)]
+        if a[2] >= near:
+            out.append(a)
+        if (a[2] >= near) != (b[2] >= near):
+            t = (near - a[2]) / (b[2] - a[2])
+            out.append(a + t * (b - a))
+    return np.array(out).reshape(-1, 3)
 
 
 def render_view(
@@ -351,18 +409,45 @@ def silhouette_outside(obj_parts, P: np.ndarray, image_size, max_samples: int = 
 
 
 def _expose(image: np.ndarray, scene: Scene, rng: np.random.Generator) -> np.ndarray:
-    """Camera response: exposure/white balance, slight lens blur, sensor noise, 8-bit output."""
-    img = image * (scene.exposure * np.float32(255.0))
+    """Camera response, drawn per view from ``rng``: exposure and white balance, sensor
+    noise of random strength, defocus and (sometimes) motion blur, lateral chromatic
+    aberration, vignetting, a tone curve, 8-bit output."""
+    ev = float(np.clip(2.0 ** rng.normal(0.0, 0.3), 0.6, 1.6))  # exposure error
+    img = image * (scene.exposure * np.float32(255.0 * ev))
     H, W = img.shape[:2]
     noise = _sensor_noise(H, W)
     y0, x0 = (
         int(rng.integers(0, noise.shape[0] - H + 1)),
         int(rng.integers(0, noise.shape[1] - W + 1)),
     )
-    img += noise[y0 : y0 + H, x0 : x0 + W]
-    img = cv2.GaussianBlur(img, (3, 3), 0.6)  # (the noise is blurred too, like demosaicing does)
+    img += noise[y0 : y0 + H, x0 : x0 + W] * np.float32(rng.uniform(0.5, 2.5))
+    # (the noise is blurred too, like demosaicing does)
+    img = cv2.GaussianBlur(img, (5, 5), float(rng.uniform(0.45, 1.1)))
+    if rng.random() < 0.3:  # motion blur along the rows
+        k = int(rng.integers(2, 5))
+        img = cv2.blur(img, (k, 1))
+    if rng.random() < 0.5:  # lateral chromatic aberration: red and blue scaled about the centre
+        c = float(rng.uniform(0.0005, 0.002))
+        for ch, scale in ((0, 1.0 + c), (2, 1.0 - c)):
+            A = np.array([[scale, 0, (1 - scale) * W / 2], [0, scale, (1 - scale) * H / 2]])
+            img[..., ch] = cv2.warpAffine(
+                img[..., ch], A, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+            )
+    strength = float(rng.uniform(0.0, 0.35))
+    if strength > 0:
+        img *= _vignette(H, W, strength)[:, :, None]
+    gamma = float(rng.uniform(0.8, 1.25))
     np.clip(img, 0.0, 255.0, out=img)
+    img = np.float32(255.0) * (img * np.float32(1.0 / 255.0)) ** np.float32(gamma)
     return img.astype(np.uint8)
+
+
+def _vignette(height: int, width: int, strength: float) -> np.ndarray:
+    """(H, W) float32 gain ``1 - strength * (r / r_corner)^2`` about the image centre."""
+    v = (np.arange(height, dtype=np.float32) - (height - 1) / 2) ** 2
+    u = (np.arange(width, dtype=np.float32) - (width - 1) / 2) ** 2
+    r2 = (v[:, None] + u[None, :]) / np.float32(v.max() + u.max())
+    return np.float32(1.0) - np.float32(strength) * r2
 
 
 @functools.cache

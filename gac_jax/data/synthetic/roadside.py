@@ -82,6 +82,7 @@ def build(b) -> None:
             if rng.random() < 0.5:
                 _trees(b, side, edge + side * 0.9, h - kerb, spacing=(8.0, 16.0))
             _poles(b, side, edge + side * 0.5, h - kerb)
+            _clutter(b, side, edge + side * (width - 0.5), h - kerb)
         else:
             b.kerb[side], b.sidewalk[side] = 0.0, 0.0
             if rng.random() < 0.5:  # concrete barrier
@@ -95,6 +96,7 @@ def build(b) -> None:
                     )
             _trees(b, side, edge + side * rng.uniform(2.0, 5.0), h, spacing=(5.0, 12.0))
             _poles(b, side, edge + side * 1.2, h)
+            _hedges(b, side, edge + side * rng.uniform(1.5, 3.0), h)
     _skyline(
         b,
     )
@@ -144,6 +146,8 @@ def _buildings(b, side, front_t):
             *glass,
             int(rng.integers(1 << 20)),
             float(rng.random() < 0.4),  # shop windows on the ground floor
+            float(rng.uniform(0.04, 0.3)),  # texture contrast (smooth plaster .. rough render)
+            float(rng.random() < 0.3),  # brick courses
         )
         mats = np.full(6, shapes.FACADE)
         mats[shapes.TOP] = shapes.FLAT
@@ -172,9 +176,16 @@ def _trees(b, side, t, ground_y, spacing):
                     tt - 0.15, tt + 0.15, top + 0.5 * crown_h, ground_y, s - 0.15, s + 0.15, bark
                 )
             )
-            ys = [top, top + 0.45 * crown_h, top + crown_h]
-            radii = [0.5 * radius, radius, 0.45 * radius]
-            b.add_road_solid(shapes.lathe(radii, ys, 8, (tt, s), leaf, shapes.FOLIAGE))
+            for k in range(int(rng.integers(1, 4))):  # a crown of 1-3 overlapping blobs
+                scale = 1.0 if k == 0 else rng.uniform(0.5, 0.8)
+                dt, ds = (0.0, 0.0) if k == 0 else rng.uniform(-0.7, 0.7, 2) * radius
+                dy = 0.0 if k == 0 else rng.uniform(0.0, 0.4) * crown_h
+                ys = [top + dy, top + dy + 0.45 * crown_h * scale, top + dy + crown_h * scale]
+                radii = [0.5 * radius * scale, radius * scale, 0.45 * radius * scale]
+                blob = leaf * rng.uniform(0.8, 1.2)
+                b.add_road_solid(
+                    shapes.lathe(radii, ys, 8, (tt + dt, s + ds), blob, shapes.FOLIAGE)
+                )
             b.obstacles.append(Footprint(tt, s, 0.3, 0.3, 0.0))
         s += rng.uniform(*spacing)
 
@@ -198,6 +209,103 @@ def _poles(b, side, t, ground_y):
         if keep:
             b.obstacles.append(Footprint(t, s, 0.3, 0.4, 0.0))
         s += rng.uniform(20.0, 45.0)
+
+
+BIN_COLORS = np.array(
+    [[0.1, 0.3, 0.12], [0.35, 0.35, 0.36], [0.08, 0.08, 0.09], [0.1, 0.2, 0.45], [0.5, 0.35, 0.1]]
+)
+
+
+def _clutter(b, side, t, ground_y):
+    """Street furniture at the back of a sidewalk: bins, bushes, bollards, fences and
+    boxes of random colour and texture (distractors that are not road users)."""
+    rng = b.rng
+    s = rng.uniform(-5.0, 6.0)
+    while s < 90.0:
+        kind = rng.choice(4, p=[0.3, 0.3, 0.2, 0.2])
+        tt = t + side * rng.uniform(-0.2, 0.3)
+        if _in_cross(b, s - 2.0, s + 2.0):
+            kind = -1
+        if kind == 0:  # wheelie bins in a row
+            for k in range(int(rng.integers(1, 4))):
+                color = BIN_COLORS[rng.integers(len(BIN_COLORS))] * rng.uniform(0.8, 1.2)
+                hb = rng.uniform(0.9, 1.2)
+                c = s + 0.7 * k
+                b.add_road_solid(
+                    shapes.box(
+                        tt - 0.3,
+                        tt + 0.3,
+                        ground_y - hb,
+                        ground_y,
+                        c - 0.3,
+                        c + 0.3,
+                        color,
+                        shapes.ROUGH,
+                    )
+                )
+        elif kind == 1:  # a bush
+            r = rng.uniform(0.5, 1.4)
+            leaf = np.array([0.16, 0.28, 0.1]) * rng.uniform(0.6, 1.4, 3)
+            hb = rng.uniform(0.7, 1.8)
+            b.add_road_solid(
+                shapes.lathe(
+                    [0.6 * r, r, 0.7 * r],
+                    [ground_y - hb, ground_y - 0.5 * hb, ground_y],
+                    8,
+                    (tt + side * 0.3, s),
+                    leaf,
+                    shapes.FOLIAGE,
+                )
+            )
+        elif kind == 2:  # a fence or railing along the sidewalk
+            length = rng.uniform(3.0, 15.0)
+            color = rng.uniform(0.1, 0.7, 3) * rng.uniform(0.5, 1.0)
+            hf = rng.uniform(0.8, 1.8)
+            b.add_road_solid(
+                shapes.box(
+                    tt - 0.03,
+                    tt + 0.03,
+                    ground_y - hf,
+                    ground_y,
+                    s,
+                    s + length,
+                    color,
+                    shapes.ROUGH,
+                )
+            )
+            s += length
+        elif kind == 3:  # a box of random colour (structured domain randomisation)
+            size = rng.uniform(0.4, 1.6, 3)
+            color = rng.uniform(0.05, 0.95, 3)
+            b.add_road_solid(
+                shapes.box(
+                    tt - size[0] / 2,
+                    tt + size[0] / 2,
+                    ground_y - size[1],
+                    ground_y,
+                    s - size[2] / 2,
+                    s + size[2] / 2,
+                    color,
+                    shapes.ROUGH,
+                )
+            )
+        s += rng.uniform(2.0, 12.0)
+
+
+def _hedges(b, side, t, ground_y):
+    """Hedges and bushes on an open roadside's verge."""
+    rng = b.rng
+    s = rng.uniform(-5.0, 20.0)
+    while s < 120.0:
+        length = rng.uniform(3.0, 25.0)
+        hh, depth = rng.uniform(0.8, 2.5), rng.uniform(0.6, 1.5)
+        leaf = np.array([0.15, 0.27, 0.1]) * rng.uniform(0.6, 1.4, 3)
+        t0, t1 = sorted((t, t + side * depth))
+        if not _in_cross(b, s, s + length):
+            b.add_road_solid(
+                shapes.box(t0, t1, ground_y - hh, ground_y, s, s + length, leaf, shapes.FOLIAGE)
+            )
+        s += length + rng.uniform(2.0, 30.0)
 
 
 def _skyline(b):

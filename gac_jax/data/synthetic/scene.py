@@ -33,6 +33,9 @@ CLASS_SIZES = {
 DEFAULT_COUNTS = {"Car": (3, 8), "Pedestrian": (0, 4), "Cyclist": (0, 2)}
 DEPTH_RANGE = (4.0, 70.0)  # depth of the labelled objects' bottom centres
 FAR_RANGE = (72.0, 95.0)  # a few farther cars (labelled DontCare)
+PARKED_ROW_SHARE = 0.75  # share of parking lanes with a row of parked cars
+PARKED_ROW_END = 75.0  # rows run from beside the camera to this far along the road (m)
+PARKED_DEPTH_RANGE = (3.0, 70.0)  # (nearer ones are left out of training: data.min_depth)
 
 PAINTS = np.array(
     [
@@ -182,7 +185,7 @@ class SceneBuilder:
         n_right = int(rng.integers(1, 4)) if one_way else int(rng.integers(1, 3))
         n_right = max(n_right, self.min_right_lanes)
         self.sides = {s: ("urban" if rng.random() < 0.7 else "open") for s in (-1, 1)}
-        park = {s: self.sides[s] == "urban" and rng.random() < 0.5 for s in (-1, 1)}
+        park = {s: self.sides[s] == "urban" and rng.random() < 0.65 for s in (-1, 1)}
         park[1] = park[1] or self.force_parking
         lanes_left, lanes_right = -n_left * lane_w, n_right * lane_w
         self.lanes = [((i + 0.5) * lane_w, 0.0) for i in range(n_right)]
@@ -257,6 +260,10 @@ class SceneBuilder:
         rng = self.rng
         ego = Footprint(self.lateral, -1.0, 3.0, 1.0, 0.0)
         self.obstacles.append(ego)
+        if "Car" in self.counts and self.counts["Car"][1] > 0:
+            for side in sorted(self.parking):
+                if rng.random() < PARKED_ROW_SHARE:
+                    self._parked_row(side)
         for cls in ("Car", "Cyclist", "Pedestrian"):
             if cls not in self.counts:
                 continue
@@ -266,6 +273,44 @@ class SceneBuilder:
         if "Car" in self.counts and self.counts["Car"][1] > 0:
             for _ in range(int(rng.integers(0, 3))):
                 self._place("Car", FAR_RANGE)
+
+    def _parked_row(self, side: int) -> None:
+        """A row of cars parked nose to tail along the parking lane on ``side``, from beside
+        the camera (cut by the image border) to far ahead, with a few empty spaces."""
+        rng = self.rng
+        psi0 = 0.0 if rng.random() < 0.8 else np.pi  # most park in the lane's direction
+        if side < 0 and any(p == np.pi for _, p in self.lanes):
+            psi0 = np.pi - psi0
+        s = rng.uniform(-4.0, 4.0)
+        while s < PARKED_ROW_END:
+            dims = self.sample_dimensions("Car")
+            if rng.random() < 0.15:  # an empty space
+                s += rng.uniform(3.0, 10.0)
+                continue
+            t = self.parking[side] + rng.normal(0.0, 0.12)
+            psi = psi0 + np.deg2rad(rng.normal(0.0, 2.0))
+            centre = s + dims[2] / 2
+            self._try_at("Car", dims, t, centre, psi, self.h, PARKED_DEPTH_RANGE)
+            s += dims[2] + rng.uniform(0.4, 2.5)
+
+    def _try_at(self, cls, dims, t, s, psi, support, depth_range) -> bool:
+        """Adds a road user at road position ``(t, s)`` and heading ``psi`` if it is free,
+        within ``depth_range`` and at least partly in the image."""
+        foot = Footprint(t, s, dims[2] / 2, dims[1] / 2, psi)
+        margin = 0.3 if cls == "Car" else 0.15
+        if any(foot.overlaps(o, margin) for o in self.obstacles):
+            return False
+        loc = np.round(self.road_rotation @ np.array([t - self.lateral, support, s]), 2)
+        if not depth_range[0] <= loc[2] <= depth_range[1]:
+            return False
+        ry = float(np.round(wrap_angle(self.heading + psi - np.pi / 2), 2))
+        box = box2d_from_corners(box3d_corners(loc[None], dims[None], [ry]), self.P2)[0]
+        height, width = self.image_size
+        if not (box[2] > 0 and box[0] < width - 1 and box[3] > 0 and box[1] < height - 1):
+            return False  # entirely outside the image
+        self.obstacles.append(foot)
+        self.objects.append(self._make(cls, dims, loc, ry, support))
+        return True
 
     def propose(self, cls):
         """A position ``(t, s)``, heading ``psi`` (road frame), support height and kind for ``cls``.
@@ -326,21 +371,8 @@ class SceneBuilder:
         for _ in range(tries):
             dims = self.sample_dimensions(cls)
             t, s, psi, support, _ = self.propose(cls)
-            foot = Footprint(t, s, dims[2] / 2, dims[1] / 2, psi)
-            margin = 0.3 if cls == "Car" else 0.15
-            if any(foot.overlaps(o, margin) for o in self.obstacles):
-                continue
-            loc = np.round(self.road_rotation @ np.array([t - self.lateral, support, s]), 2)
-            if not depth_range[0] <= loc[2] <= depth_range[1]:
-                continue
-            ry = float(np.round(wrap_angle(self.heading + psi - np.pi / 2), 2))
-            box = box2d_from_corners(box3d_corners(loc[None], dims[None], [ry]), self.P2)[0]
-            height, width = self.image_size
-            if not (box[2] > 0 and box[0] < width - 1 and box[3] > 0 and box[1] < height - 1):
-                continue  # entirely outside the image
-            self.obstacles.append(foot)
-            self.objects.append(self._make(cls, dims, loc, ry, support))
-            return
+            if self._try_at(cls, dims, t, s, psi, support, depth_range):
+                return
 
     def _make(self, cls, dims, loc, ry, support):
         return place_object(cls, dims, self.object_parts(cls, dims), loc, ry, support)

@@ -18,7 +18,7 @@ import dataclasses
 import numpy as np
 
 # Face materials (how ``materials.py`` shades a face).
-FLAT, GLASS, FACADE, PAVING, FOLIAGE, HEADLIGHTS, TAILLIGHTS, ROUGH = range(8)
+FLAT, GLASS, FACADE, PAVING, FOLIAGE, HEADLIGHTS, TAILLIGHTS, ROUGH, CARSIDE = range(9)
 
 # Face order of box-like hexahedra: vertices are indexed like the corners of
 # ``[x0, x1] x [y0, y1] x [z0, z1]`` with bit 0 = x, bit 1 = y, bit 2 = z.
@@ -218,36 +218,77 @@ def _shade(color, factor) -> np.ndarray:
 # --------------------------------------------------------------------------- object models
 
 
-def car_parts(h: float, w: float, l: float, paint, rng: np.random.Generator) -> list[Solid]:
-    """A car: chamfered body, glass cabin with a painted roof, four dark wheels.
+def _rounded(a, b, x: float, bulge: float) -> tuple[float, float]:
+    """A point above the chord from ``a`` to ``b`` (x-y profile points, y down) at ``x``:
+    lifted by ``bulge`` it rounds the corner between them and keeps the outline convex."""
+    t = (x - a[0]) / (b[0] - a[0])
+    return (x, a[1] + t * (b[1] - a[1]) - bulge)
 
-    ``paint`` is the body RGB in [0, 1]. All parts lie inside the (h, w, l) box.
+
+# Car body types and how often they occur (KITTI's "Car" class: saloons, hatchbacks,
+# estates and small SUVs; vans and lorries are other classes).
+CAR_BODIES = ("sedan", "hatchback", "wagon", "suv")
+CAR_BODY_WEIGHTS = (0.4, 0.32, 0.16, 0.12)
+
+
+def car_parts(
+    h: float, w: float, l: float, paint, rng: np.random.Generator, kind: str | None = None
+) -> list[Solid]:
+    """A car: rounded body with wheel arches, glass cabin with a painted roof, mirrors, wheels.
+
+    The body type (:data:`CAR_BODIES`; drawn from ``rng`` when ``kind`` is None) sets the
+    cabin's length and the rear's shape. ``paint`` is the body RGB in [0, 1]. All parts lie
+    inside the (h, w, l) box.
     """
+    drawn = CAR_BODIES[rng.choice(len(CAR_BODIES), p=CAR_BODY_WEIGHTS)]
+    kind = drawn if kind is None else kind
     r = min(0.21 * h, 0.09 * l) * rng.uniform(0.95, 1.05)  # wheel radius
     tyre_w = 0.13 * w
-    sill = -0.5 * r  # bottom of the body panels
-    belt = -rng.uniform(0.56, 0.62) * h  # top of the body (window line)
-    nose = -rng.uniform(0.38, 0.46) * h  # top of the front bumper
-    tail = belt + rng.uniform(0.0, 0.08) * h
-    hood = rng.uniform(0.06, 0.12) * l
+    sill = -0.45 * r  # bottom of the body panels
+    belt = -rng.uniform(0.55, 0.60) * h if kind != "suv" else -rng.uniform(0.60, 0.66) * h
+    nose = -rng.uniform(0.38, 0.46) * h  # top of the front face
+    hatch = kind in ("hatchback", "wagon", "suv")
+    tail = belt + (rng.uniform(0.0, 0.03) if hatch else rng.uniform(0.02, 0.08)) * h
     body_w = 0.47 * w
-    profile = [
-        (-l / 2, sill),
-        (l / 2, sill),
-        (l / 2, nose),
-        (l / 2 - hood, belt),
-        (-l / 2 + 0.03 * l, belt),
-        (-l / 2, tail),
+    # cabin: windscreen base/top (front) and rear window base/top (back), along x
+    c_front = rng.uniform(0.12, 0.2) * l
+    t_front = c_front - rng.uniform(0.15, 0.21) * l
+    if kind == "sedan":
+        c_back = -rng.uniform(0.28, 0.34) * l
+        t_back = c_back + rng.uniform(0.1, 0.14) * l
+    elif kind == "hatchback":
+        c_back = -rng.uniform(0.42, 0.46) * l
+        t_back = c_back + rng.uniform(0.06, 0.1) * l
+    else:  # wagon, suv: a near-vertical tailgate
+        c_back = -rng.uniform(0.45, 0.47) * l
+        t_back = c_back + rng.uniform(0.02, 0.04) * l
+    front_face_top = nose
+    rear_face_top = tail + 0.02 * h
+    hood_end = (c_front + 0.01 * l, belt)
+    deck_end = (max(c_back - 0.01 * l, -l / 2 + 0.06 * l), belt)
+    profile = [  # a convex side outline, rounded at the corners
+        (-l / 2 + 0.03 * l, sill),
+        (l / 2 - 0.03 * l, sill),
+        (l / 2, sill - 0.35 * (sill - nose)),
+        (l / 2, front_face_top),
+        _rounded((l / 2, front_face_top), hood_end, l / 2 - 0.04 * l, 0.015 * h),
+        hood_end,
+        deck_end,
+        _rounded(deck_end, (-l / 2, rear_face_top), -l / 2 + 0.03 * l, 0.01 * h),
+        (-l / 2, rear_face_top),
+        (-l / 2, sill - 0.3 * (sill - tail)),
     ]
+    x_wheels = (l / 2 - 0.19 * l, -l / 2 + 0.2 * l)
+    doors = (c_front - 0.02 * l, 0.5 * (c_front + c_back))
     body = dataclasses.replace(
-        prism_z(profile, -body_w, body_w, paint), params=(nose, tail, body_w)
+        prism_z(profile, -body_w, body_w, paint),
+        params=(front_face_top, rear_face_top, body_w, *x_wheels, r, sill, belt, *doors),
     )
-    body.materials[1] = HEADLIGHTS  # the front face (x = +l/2)
-    body.materials[5] = TAILLIGHTS  # the rear face (x = -l/2)
+    body.materials[2] = HEADLIGHTS  # the front face (x = +l/2)
+    body.materials[8] = TAILLIGHTS  # the rear face (x = -l/2)
+    body.materials[-2:] = CARSIDE  # the two sides (z = -+body_w): wheel arches, doors
 
     # Cabin: a frustum with parallel top and bottom rectangles (planar faces).
-    c_back, c_front = -rng.uniform(0.30, 0.38) * l, rng.uniform(0.12, 0.22) * l
-    t_back, t_front = c_back + rng.uniform(0.07, 0.12) * l, c_front - rng.uniform(0.14, 0.2) * l
     wb, wt = 0.45 * w, rng.uniform(0.36, 0.40) * w
     ys = (-h, belt + 0.01)  # cabin top and bottom (slightly sunk into the body)
     verts = []
@@ -256,24 +297,31 @@ def car_parts(h: float, w: float, l: float, paint, rng: np.random.Generator) -> 
         x = (t_back, t_front)[i & 1] if top else (c_back, c_front)[i & 1]
         half = wt if top else wb
         verts.append((x, ys[0] if top else ys[1], half if (i >> 2) & 1 else -half))
-    glass = np.array([0.08, 0.10, 0.13]) + rng.uniform(0, 0.06)
+    glass = np.array([0.05, 0.06, 0.08]) + rng.uniform(0, 0.05)
     colors = np.array([glass] * 6, np.float32)
     colors[TOP] = paint
     materials = np.full(6, GLASS)
     materials[TOP] = FLAT
-    cabin = convex_solid(np.array(verts), HEX_FACES, colors, materials)
+    reflect = rng.uniform(0.1, 0.45)  # share of the sky seen in the windows
+    cabin = convex_solid(np.array(verts), HEX_FACES, colors, materials, (reflect, -h, belt))
+
+    mirrors = []
+    for z0, z1 in ((-w / 2 + 0.005, -body_w + 0.01), (body_w - 0.01, w / 2 - 0.005)):
+        x0 = c_front - 0.06 * l
+        mirrors.append(box(x0, x0 + 0.05 * l, belt - 0.14, belt - 0.03, z0, z1, paint))
 
     tyre = np.array([0.05, 0.05, 0.055])
     rim = np.array([0.35, 0.35, 0.36]) * rng.uniform(0.6, 1.2)
     wheels = []
-    for x in (l / 2 - 0.19 * l, -l / 2 + 0.2 * l):
+    for x in x_wheels:
         for z0, z1 in ((-w / 2, -w / 2 + tyre_w), (w / 2 - tyre_w, w / 2)):
-            octagon = polygon(8, r, (x, -r))  # a vertex touches the ground
-            wheel = prism_z(octagon, z0, z1, tyre, cap_colors=tyre)
+            polygon12 = polygon(12, r, (x, -r), np.pi / 12)
+            polygon12[:, 1] = np.minimum(polygon12[:, 1], 0.0)  # (no part below the ground)
+            wheel = prism_z(polygon12, z0, z1, tyre, cap_colors=tyre)
             wheel.colors[-2:] = rim  # hub caps
             wheel.materials[-2:] = ROUGH
             wheels.append(wheel)
-    return [body, cabin, *wheels]
+    return [body, cabin, *mirrors, *wheels]
 
 
 def pedestrian_parts(h: float, w: float, l: float, rng: np.random.Generator) -> list[Solid]:

@@ -53,7 +53,7 @@ from gac_jax.data.synthetic.generated_dir import (
 from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
 from gac_jax.progress import about
 
-FORMAT_VERSION = 1  # bump whenever the generated content changes (it keys idempotence)
+FORMAT_VERSION = 2  # bump whenever the generated content changes (it keys idempotence)
 MARKER = ".synthetic_in_progress.json"
 DONE = "synthetic.json"
 OWNED = ("training", "ImageSets", "depth")  # what a fresh start may delete (only in our own dirs)
@@ -276,6 +276,7 @@ class GenerationResult:
     num_frames: int
     generated: int
     frame_seconds: list[float]
+    complete: bool = True  # every frame is there (False: a shard's part only, so far)
 
 
 def _check_target(root: Path, spec: DatasetSpec, overwrite: bool) -> str:
@@ -296,6 +297,7 @@ def generate_dataset(
     workers: int | None = None,
     overwrite: bool = False,
     progress: bool = False,
+    shard: tuple[int, int] | None = None,
 ) -> GenerationResult:
     """Generates (or completes) a synthetic KITTI-format dataset in ``out_dir``.
 
@@ -319,6 +321,11 @@ def generate_dataset(
       workers: processes (default ``os.cpu_count()``; 1 = in this process).
       overwrite: replace a dataset made with other arguments instead of failing.
       progress: show a progress bar.
+      shard: ``(k, n)``: write only frames ``k * num_frames // n .. (k + 1) * num_frames // n
+        - 1`` (and the shared index files). Shards may run in any order and at once, in other
+        processes or on other machines sharing ``out_dir``; their frames are the bytes one
+        run writes, and whichever finds every frame present marks the dataset complete
+        (``GenerationResult.complete``).
 
     Raises:
       ValueError: bad arguments, or ``out_dir`` holds something else.
@@ -343,9 +350,16 @@ def generate_dataset(
     split_of = {i: name for name, ids in splits.items() for i in ids}
     subsets = spec.subsets()
     frame_rigs = [frame_rig(seed, i, rig_set) for i in range(num_frames)]
+    if shard is not None:
+        k, n = shard
+        if not (n >= 1 and 0 <= k < n):
+            raise ValueError(f"shard {k}/{n}: expected 0 <= k < n")
+        mine = range(k * num_frames // n, (k + 1) * num_frames // n)
+    else:
+        mine = range(num_frames)
     todo = [
         i
-        for i in range(num_frames)
+        for i in mine
         if state == "fresh"
         or not all(
             p.exists() for p in frame_paths(root, i, frame_rigs[i], split_of[i], rig_set).values()
@@ -360,7 +374,8 @@ def generate_dataset(
     ]
     if state == "done" and not todo and all(p.exists() for p in dataset_files):
         return GenerationResult(root, num_frames, 0, [])
-    start_writing(root, spec.to_json(), DONE, MARKER, OWNED)
+    # (shards may be writing beside this one: their temporary files are not stale)
+    start_writing(root, spec.to_json(), DONE, MARKER, OWNED, clean=shard is None)
     if state != "fresh":
         todo = [
             i
@@ -378,8 +393,14 @@ def generate_dataset(
             f.write(calibration.cam_to_cam_text(rig, rigs.image_size(rig, spec.image_size)))
         with files.atomic_write(raw / "calib_velo_to_cam.txt") as f:
             f.write(calibration.velo_to_cam_text(rig))
-    finish_writing(root, spec.to_json(), DONE, MARKER)
-    return GenerationResult(root, num_frames, len(todo), seconds)
+    complete = shard is None or all(
+        p.exists()
+        for i in range(num_frames)
+        for p in frame_paths(root, i, frame_rigs[i], split_of[i], rig_set).values()
+    )
+    if complete:
+        finish_writing(root, spec.to_json(), DONE, MARKER)
+    return GenerationResult(root, num_frames, len(todo), seconds, complete)
 
 
 def _run(job: _Job, todo: list[int], workers: int | None, progress: bool) -> list[float]:
