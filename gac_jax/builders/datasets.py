@@ -38,7 +38,12 @@ def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
     if cfg.get("root"):
         return Path(cfg.root)
     s = cfg.synthetic
+    from gac_jax.data.synthetic.writer import FORMAT_VERSION
+
     name = f"synthetic_n{s.num_frames}_s{s.seed}_{s.height}x{s.width}_val{s.val_fraction:g}"
+    # (a new version of the frames gets a folder of its own: an older cache stays readable to
+    # the run folders that recorded it, and is never taken for the new one)
+    name += f"_v{FORMAT_VERSION}" if FORMAT_VERSION > 1 else ""
     rig_set = s.get("rigs", "kitti")
     return default_cache_dir() / (name if rig_set == "kitti" else f"{name}_{rig_set}rig")
 
