@@ -51,6 +51,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.model.encoder_depth = 34
     c.model.encoder_width = 32
     c.data.val_cameras = (2,)  # left views: half the evaluation time
+    # other cameras' tone curves, white balance, blur, noise and JPEG (data/camera_effects.py)
+    c.data.camera_effects = True
     c.train.num_epochs = 5
     c.train.learning_rate = 4e-4
     c.train.final_learning_rate = 4e-5

@@ -13,6 +13,7 @@ import ml_collections
 
 from gac_jax.builders.datasets import plane_ops, prepare_dataset
 from gac_jax.data import transforms
+from gac_jax.data.camera_effects import CameraEffects
 from gac_jax.data.kitti_depth import list_selection
 from gac_jax.data.sources import KittiDepthSelectionSource, open_depth_source
 from gac_jax.evaluation.depth_evaluator import DepthEvaluator
@@ -38,6 +39,8 @@ def _view_ops(d: ml_collections.ConfigDict) -> list:
 def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
     d = config.data
     ops = _view_ops(d) + [transforms.RandomCropWidth(d.width)]
+    if d.get("camera_effects", False):  # absent in older run folders
+        ops.append(CameraEffects())
     if d.photometric:
         ops.append(transforms.PhotometricDistort())
     if d.flip_prob > 0:
