@@ -164,6 +164,9 @@ def textured_faces(solid: shapes.Solid, face: np.ndarray, local: np.ndarray, dep
         elif code == shapes.FOLIAGE:
             leaf = lookup("medium", x + z, y, 5.0) + 0.8 * lookup("fine", z - x, y, 14.0)
             leaf += 0.6 * lookup("fine", x - z, y, 40.0) * fade[sel]
+            # leaves and gaps at the scale of a pixel or two however far (in real foliage
+            # there is always structure at the pixel's size)
+            leaf += 0.7 * lookup("fine", x - z, y + 0.5 * x, 1400.0 / depth[sel])
             base[sel] = base[sel] * np.clip(0.75 + 0.4 * leaf, 0.15, 1.7)[:, None]
         elif code == shapes.ROUGH:
             base[sel] = (

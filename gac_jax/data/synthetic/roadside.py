@@ -211,6 +211,7 @@ def _poles(b, side, t, ground_y):
         s += rng.uniform(20.0, 45.0)
 
 
+CLUTTER_END = 150.0  # street furniture along the sidewalks up to here (m)
 BIN_COLORS = np.array(
     [[0.1, 0.3, 0.12], [0.35, 0.35, 0.36], [0.08, 0.08, 0.09], [0.1, 0.2, 0.45], [0.5, 0.35, 0.1]]
 )
@@ -221,7 +222,7 @@ def _clutter(b, side, t, ground_y):
     boxes of random colour and texture (distractors that are not road users)."""
     rng = b.rng
     s = rng.uniform(-5.0, 6.0)
-    while s < 90.0:
+    while s < CLUTTER_END:
         kind = rng.choice(4, p=[0.3, 0.3, 0.2, 0.2])
         tt = t + side * rng.uniform(-0.2, 0.3)
         if _in_cross(b, s - 2.0, s + 2.0):
@@ -275,7 +276,7 @@ def _clutter(b, side, t, ground_y):
             )
             s += length
         elif kind == 3:  # a box of random colour (structured domain randomisation)
-            size = rng.uniform(0.4, 1.6, 3)
+            size = rng.uniform(0.4, 1.6, 3) * (rng.uniform(1.0, 2.8) if rng.random() < 0.3 else 1)
             color = rng.uniform(0.05, 0.95, 3)
             b.add_road_solid(
                 shapes.box(
@@ -289,14 +290,14 @@ def _clutter(b, side, t, ground_y):
                     shapes.ROUGH,
                 )
             )
-        s += rng.uniform(2.0, 12.0)
+        s += rng.uniform(2.0, 12.0) * (1.0 if s < 40.0 else 0.6)  # denser far away
 
 
 def _hedges(b, side, t, ground_y):
     """Hedges and bushes on an open roadside's verge."""
     rng = b.rng
     s = rng.uniform(-5.0, 20.0)
-    while s < 120.0:
+    while s < CLUTTER_END:
         length = rng.uniform(3.0, 25.0)
         hh, depth = rng.uniform(0.8, 2.5), rng.uniform(0.6, 1.5)
         leaf = np.array([0.15, 0.27, 0.1]) * rng.uniform(0.6, 1.4, 3)
