@@ -175,7 +175,16 @@ class _Canvas:
         """(K, 3) Lambert-shaded colours of the solid's faces."""
         s = self.scene
         diffuse = np.maximum(solid.normals @ s.sun, 0.0) * (1.0 - s.ambient)
-        return (solid.colors * (s.ambient + diffuse)[:, None]).astype(np.float32)
+        out = solid.colors * (s.ambient + diffuse)[:, None]
+        if solid.gloss > 0:  # the sky mirrored: the zenith in upward faces, the horizon sideways
+            up = np.clip(-(solid.normals @ s.ground_normal), 0.0, 1.0)
+            side = 1.0 - np.abs(solid.normals @ s.ground_normal)
+            sky = up[:, None] * s.sky_top + 0.5 * side[:, None] * s.sky_horizon
+            out = out * (1.0 - solid.gloss) + solid.gloss * sky
+            out[solid.materials == shapes.GLASS] = (solid.colors * (s.ambient + diffuse)[:, None])[
+                solid.materials == shapes.GLASS
+            ]
+        return out.astype(np.float32)
 
     def draw(self, solid: shapes.Solid, object_id: int = -1, rect=None, union=None) -> None:
         """Z-buffers ``solid``; ``union`` (bool array over ``rect``) gathers its coverage."""
@@ -273,8 +282,6 @@ class _Canvas:
         """Shadows on the ground and sidewalks: soft-edged ones of the road users, and the
         exact ones of the roadside's solids (buildings, trees, poles, barriers)."""
         scene, cam = self.scene, self.cam
-        if scene.shadow <= 0:
-            return
         sun_road = scene.sun @ scene.road_rotation
         H, W = cam.size
         mask = np.zeros((H, W), np.float32)
@@ -284,10 +291,16 @@ class _Canvas:
             )
             if hull is not None:
                 cv2.fillConvexPoly(mask, hull, 1.0, lineType=cv2.LINE_AA, shift=2)
+        contact = np.zeros((H, W), np.float32)  # the dark ground right under a road user
         for obj in scene.objects:
             foot = scene.to_road(obj.corners()[:4])
             foot[:, 1] = obj.support_y
             centre = foot.mean(axis=0)
+            under = centre + (foot - centre) * np.array([0.92, 1.0, 0.95])
+            uv, w = project(under @ scene.road_rotation.T + scene.road_translation, cam.P)
+            if np.all(w >= NEAR):
+                hull = cv2.convexHull(np.round(uv * 4).astype(np.int32))
+                cv2.fillConvexPoly(contact, hull, 1.0, lineType=cv2.LINE_AA, shift=2)
             grown = centre + (foot - centre) * 1.08
             elev = max(-sun_road[1], 0.2)
             shift = -sun_road / elev * obj.dimensions[0] * 0.6
@@ -300,9 +313,11 @@ class _Canvas:
             hull = cv2.convexHull(np.round(uv * 4).astype(np.int32))
             cv2.fillConvexPoly(mask, hull, 1.0, lineType=cv2.LINE_AA, shift=2)
         receivers = (self.kind == GROUND) | (self.kind == RECEIVER)
-        self.image *= (1.0 - scene.shadow * mask * receivers)[:, :, None]
+        dark = np.maximum(scene.shadow * mask, CONTACT_SHADOW * contact)
+        self.image *= (1.0 - dark * receivers)[:, :, None]
 
 
+CONTACT_SHADOW = 0.7  # darkening of the ground under a road user, whatever the sky
 MIN_CASTER_HEIGHT = 0.3  # metres: lower solids (kerbs, sidewalk slabs) cast no shadow
 
 

@@ -46,6 +46,8 @@ class Solid:
       frame: (3, 4) ``[R | t]`` mapping the solid's texture frame to the current
         frame (``X = R x + t``); shaders read texture coordinates ``x``.
       params: material parameters (e.g. a facade's window layout).
+      gloss: a glossy finish: faces add this share of the sky's colour, the zenith's as they
+        face up and the horizon's as they face sideways (0: matte).
     """
 
     normals: np.ndarray
@@ -55,6 +57,7 @@ class Solid:
     materials: np.ndarray
     frame: np.ndarray
     params: tuple = ()
+    gloss: float = 0.0  # share of the sky a face mirrors (car paint), by how much it faces up
 
     def transformed(self, R: np.ndarray, t: np.ndarray) -> Solid:
         """The solid moved by ``X' = R X + t`` (R a rotation)."""
@@ -280,9 +283,11 @@ def car_parts(
     ]
     x_wheels = (l / 2 - 0.19 * l, -l / 2 + 0.2 * l)
     doors = (c_front - 0.02 * l, 0.5 * (c_front + c_back))
+    gloss = rng.uniform(0.05, 0.3)
     body = dataclasses.replace(
         prism_z(profile, -body_w, body_w, paint),
         params=(front_face_top, rear_face_top, body_w, *x_wheels, r, sill, belt, *doors),
+        gloss=gloss,
     )
     body.materials[2] = HEADLIGHTS  # the front face (x = +l/2)
     body.materials[8] = TAILLIGHTS  # the rear face (x = -l/2)
@@ -304,6 +309,7 @@ def car_parts(
     materials[TOP] = FLAT
     reflect = rng.uniform(0.1, 0.45)  # share of the sky seen in the windows
     cabin = convex_solid(np.array(verts), HEX_FACES, colors, materials, (reflect, -h, belt))
+    cabin = dataclasses.replace(cabin, gloss=gloss)  # (the painted roof; glass shades itself)
 
     mirrors = []
     for z0, z1 in ((-w / 2 + 0.005, -body_w + 0.01), (body_w - 0.01, w / 2 - 0.005)):
