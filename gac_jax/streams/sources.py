@@ -344,7 +344,10 @@ class SequenceSource:
                 raise KittiFormatError(
                     folder, f"no calibration found ({looked}); pass --calib FILE"
                 )
-            self.found.append(f"calibration: {calib} ({self.files.layout} layout)")
+            layout = self.files.layout
+            self.found.append(
+                f"calibration: {calib}" + (f" ({layout} layout)" if layout != "folder" else "")
+            )
         self.calibration = read_calib(calib, camera)
         self.P2 = np.asarray(self.calibration.projection(camera), np.float64)
         self.times = None
