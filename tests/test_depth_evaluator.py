@@ -15,7 +15,7 @@ from gac_jax import geometry
 from gac_jax.cli import evaluate as cli
 from gac_jax.data import transforms
 from gac_jax.data.files import read_depth_png, write_png
-from gac_jax.data.kitti_depth import read_cam_to_cam
+from gac_jax.data.kitti_calib import read_calib
 from gac_jax.data.sources import KittiDepthSource, new_sample
 from gac_jax.evaluation.depth_evaluator import (
     BASELINE_MAX_DEPTH,
@@ -38,7 +38,7 @@ def depth_root(kitti_samples) -> Path:
 
 @pytest.fixture(scope="module")
 def P2(depth_root) -> np.ndarray:
-    return read_cam_to_cam(depth_root / "raw" / "2011_09_26" / "calib_cam_to_cam.txt").P_rect[2]
+    return read_calib(depth_root / "raw" / "2011_09_26" / "calib_cam_to_cam.txt").P2
 
 
 def _linear_log_depth(u, v):

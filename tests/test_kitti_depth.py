@@ -9,6 +9,7 @@ import pytest
 
 from gac_jax.data import kitti_depth
 from gac_jax.data.files import KittiFormatError
+from gac_jax.data.kitti_calib import parse_calib
 
 CALIB = """calib_time: 09-Jan-2012 13:57:47
 S_rect_02: 1.242000e+03 3.750000e+02
@@ -19,11 +20,12 @@ P_rect_03: 7.2e+02 0 6.0e+02 -3.3e+02 0 7.2e+02 1.7e+02 2.1e+00 0 0 1 2.7e-03
 
 
 def test_parse_cam_to_cam_by_hand():
-    calib = kitti_depth.parse_cam_to_cam(CALIB)
+    calib = parse_calib(CALIB)
     np.testing.assert_array_equal(
-        calib.P_rect[2], [[720, 0, 600, 44], [0, 720, 170, 0.21], [0, 0, 1, 2.7e-3]]
+        calib.P2, [[720, 0, 600, 44], [0, 720, 170, 0.21], [0, 0, 1, 2.7e-3]]
     )
-    assert calib.P_rect[3][0, 3] == -330 and calib.S_rect == {2: (375, 1242)}
+    assert calib.P3[0, 3] == -330 and calib.image_sizes == {2: (375, 1242)}
+    assert calib.kind == "raw" and calib.P0 is None
 
 
 @pytest.mark.parametrize(
@@ -33,20 +35,20 @@ def test_parse_cam_to_cam_by_hand():
         (CALIB.replace("1.7e+02 2.1e+00", "1.7e+02 x"), 5, "non-numeric value 'x'"),
         (CALIB.replace("3.750000e+02", "-3"), 2, "two positive integers"),
         ("calib_time 09-Jan-2012\n", 1, "expected 'KEY: v1 v2 ...'"),
-        ("S_rect_02: 1242 375\n", None, "no P_rect_0X entries"),
+        ("S_rect_02: 1242 375\n", None, "calibration has no P_rect_02"),
         (CALIB.replace("7.2e+02 0 6.0e+02 4.4e+01", "0 0 0 4.4e+01"), 3, "singular"),
     ],
 )
 def test_parse_cam_to_cam_errors(text, line, problem):
     where = "calib.txt" + (f":{line}" if line else "")
     with pytest.raises(KittiFormatError, match=re.escape(where) + ": .*" + re.escape(problem)):
-        kitti_depth.parse_cam_to_cam(text, "calib.txt")
+        parse_calib(text, "calib.txt")
 
 
 def test_projection_for_missing_camera():
-    calib = kitti_depth.parse_cam_to_cam(CALIB.replace("P_rect_03", "P_other_03"))
+    calib = parse_calib(CALIB.replace("P_rect_03", "P_other_03"), "x.txt")
     with pytest.raises(KittiFormatError, match="^x.txt: calibration has no P_rect_03"):
-        kitti_depth.projection_for_camera(calib, 3, "x.txt")
+        calib.projection(3)
 
 
 def test_drive_date():

@@ -158,18 +158,18 @@ def test_depth_source(kitti_samples):
     root = kitti_samples / "depth"
     src = KittiDepthSource(root, "train")
     assert len(src) == 2 and isinstance(open_depth_source(root), KittiDepthSource)
-    calib = kitti_depth.read_cam_to_cam(root / "raw" / "2011_09_26" / "calib_cam_to_cam.txt")
-    assert calib.S_rect[2] == (375, 1242)
+    calib = read_calib(root / "raw" / "2011_09_26" / "calib_cam_to_cam.txt")
+    assert calib.image_sizes[2] == (375, 1242)
     for i, cam in enumerate((2, 3)):
         s = src[i]
         assert s["frame_id"] == f"{DRIVE}/{FRAME}" and s["camera"] == cam
-        np.testing.assert_array_equal(s["P2"], calib.P_rect[cam])
+        np.testing.assert_array_equal(s["P2"], calib.projection(cam))
         assert s["depth"].shape == s["image"].shape[:2] == (375, 1242)
         valid = s["depth"] > 0
         assert 0.15 < valid.mean() < 0.25 and 80 < s["depth"].max() < 86
     # P_rect_02 by hand from the file.
     np.testing.assert_allclose(
-        calib.P_rect[2][0], [7.215377e02, 0.0, 6.095593e02, 4.485728e01], rtol=0, atol=1e-9
+        calib.P2[0], [7.215377e02, 0.0, 6.095593e02, 4.485728e01], rtol=0, atol=1e-9
     )
     assert len(KittiDepthSource(root, "train", cameras=(3,))) == 1
 

@@ -154,11 +154,11 @@ def test_splits_hold_out_two_rigs(dataset):
 
 def test_raw_calibration_per_rig(dataset):
     for mount in rigs.MULTI_RIGS:
-        raw = kitti_depth.read_cam_to_cam(
+        raw = kitti.read_calib(
             dataset / "depth" / "raw" / mount.camera.date / "calib_cam_to_cam.txt"
         )
         size = rigs.image_size(mount.camera, SIZE)
-        assert tuple(raw.S_rect[2]) == size
+        assert tuple(raw.image_sizes[2]) == size
 
 
 def test_configs_select_the_multi_rig_dataset(monkeypatch, tmp_path):

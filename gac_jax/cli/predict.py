@@ -8,9 +8,11 @@
 
 ``IMAGE_OR_DIR`` is one image (PNG/JPEG) or a folder of them. Each image needs
 its KITTI calibration file (``P2: ...`` line; ``--calib-camera 3`` uses ``P3``):
-``--calib FILE`` serves every image, ``--calib DIR`` holds ``<stem>.txt`` per
-image; without ``--calib`` the KITTI layout is assumed (``<images>/../calib/<stem>.txt``,
-else ``<stem>.txt`` beside the image). An image whose KITTI layout has a ground-plane file
+``--calib FILE`` serves every image (any KITTI calibration format: object, tracking, raw
+``calib_cam_to_cam.txt``), ``--calib DIR`` holds ``<stem>.txt`` per image; without ``--calib``
+the KITTI layout is assumed (``<images>/../calib/<stem>.txt``, else ``<stem>.txt`` beside the
+image, else, for the frames of a KITTI raw drive ``DATE/DATE_drive_NNNN_sync/image_0N/data``,
+the day's ``DATE/calib_cam_to_cam.txt``). An image whose KITTI layout has a ground-plane file
 (``<images>/../planes/<stem>.txt``) is predicted with that plane, the others with the config's
 level camera (``model.gac.camera_height``). Images of any size go through the model's
 test transform (crop the top rows, resize to the input height, crop/pad the
@@ -59,9 +61,13 @@ def find_images(path: str | os.PathLike) -> list[Path]:
     return images
 
 
-def find_calibrations(images: Sequence[Path], calib: str | os.PathLike | None) -> list[Path]:
-    """Calibration file of every image (see the module docstring for the search order)."""
+def find_calibrations(
+    images: Sequence[Path], calib: str | os.PathLike | None, camera: int = 2
+) -> list[Path]:
+    """Calibration file of every image (see the module docstring for the search order;
+    ``camera``: 2 or 3, checked against a KITTI raw drive's ``image_0N``)."""
     from gac_jax.data.files import KittiFormatError
+    from gac_jax.data.kitti_raw import RawDrive
 
     hint = (
         "pass --calib FILE (one calibration for all images) or --calib DIR "
@@ -86,6 +92,13 @@ def find_calibrations(images: Sequence[Path], calib: str | os.PathLike | None) -
             image.parent.parent / "calib" / f"{image.stem}.txt",
             image.with_suffix(".txt"),
         ]
+        raw = RawDrive.locate(image.parent, camera) if image.parent.name == "data" else None
+        if raw is not None:
+            if raw.camera != camera:
+                raise KittiFormatError(
+                    image, f"a frame of camera {raw.camera}: pass --calib-camera {raw.camera}"
+                )
+            candidates.append(raw.calib)
         path = next((c for c in candidates if c.is_file()), None)
         if path is None:
             looked = " and ".join(str(c) for c in candidates)
@@ -127,10 +140,7 @@ class ImageSource:
         from gac_jax.data.kitti import read_calib, read_plane
         from gac_jax.data.sources import new_sample
 
-        calib = read_calib(self.calibs[i])
-        P = calib.P2 if self.camera == 2 else calib.P3
-        if P is None:
-            raise KittiFormatError(self.calibs[i], f"calibration has no P{self.camera}")
+        P = read_calib(self.calibs[i], self.camera).projection(self.camera)
         image = read_image(self.images[i])
         if self.input_geometry is not None:
             crop_top, height, width = self.input_geometry
@@ -202,7 +212,7 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     if not workdir.is_dir():
         raise KittiFormatError(workdir, "workdir not found")
     images = find_images(args.input)
-    calibs = find_calibrations(images, args.calib)
+    calibs = find_calibrations(images, args.calib, args.calib_camera)
     overrides = []
     if args.score_threshold is not None:
         overrides.append(f"eval.score_threshold={args.score_threshold}")

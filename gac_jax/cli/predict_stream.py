@@ -8,10 +8,13 @@ detector, written as an annotated video and per-frame results while it runs.
         [--track [--poses FILE]]
         [--no-video] [--video-scale S] [--network-requests N]
 
-A video or camera needs ``--calib FILE`` (KITTI calibration with a ``P2`` line, checked
-against the frame size); a ``--sequence`` in the KITTI tracking layout
-(``ROOT/training/image_02/SSSS/``) finds ``ROOT/training/calib/SSSS.txt`` and the per-frame
-planes ``ROOT/training/planes/SSSS/<frame>.txt`` by itself; ``--clip N`` runs on generated
+A video or camera needs ``--calib FILE`` (a KITTI calibration of any format,
+:mod:`gac_jax.data.kitti_calib`, checked against the frame size); a ``--sequence`` in the
+KITTI tracking layout (``ROOT/training/image_02/SSSS/``) finds ``ROOT/training/calib/SSSS.txt``
+and the per-frame planes ``ROOT/training/planes/SSSS/<frame>.txt`` by itself, one in the KITTI
+raw layout (``DATE/DATE_drive_NNNN_sync/image_02/data``, its ``image_02`` or the drive folder)
+the day's ``DATE/calib_cam_to_cam.txt`` and the frame times ``image_02/timestamps.txt``
+(:mod:`gac_jax.streams.sources`); ``--clip N`` runs on generated
 driving clip N (made into the cache on first use, no download). Without a plane the config's
 level camera is used. Writes ``OUT/annotated.mp4`` (camera view with 3D boxes | bird's-eye
 view, at the input's fps) and ``OUT/data/<frame>.txt`` (or ``OUT/detections.jsonl`` with
@@ -43,6 +46,7 @@ from pathlib import Path
 
 from gac_jax.cli import predict_track
 from gac_jax.data.files import KittiFormatError
+from gac_jax.data.kitti_raw import RawDrive
 
 STREAM_SOURCES = ("video", "camera", "sequence", "clip")
 CLIP_SEQUENCES = 2  # sequences of the generated clip set (--clip 0, --clip 1)
@@ -258,6 +262,8 @@ def output_folder(args: argparse.Namespace) -> Path:
         name = f"camera{args.camera}"
     elif kind == "clip":
         name = f"{args.clip:04d}"  # the sequence folder of the generated set
+    elif kind == "sequence" and (raw := RawDrive.locate(args.sequence, args.calib_camera)):
+        name = raw.drive.name  # not the "data" folder of its frames
     else:
         name = Path(args.video if kind == "video" else args.sequence).stem
     return Path(args.workdir) / "predict" / (name or "stream")
@@ -385,7 +391,10 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
     video = results = None
     try:
         plan = plan_outputs(args, source)
-        poses = predict_track.stream_poses(args, source) if args.track else None
+        for line in getattr(source, "found", ()):  # what a sequence's layout gave
+            print(line, flush=True)
+        log = functools.partial(print, flush=True)
+        poses = predict_track.stream_poses(args, source, log) if args.track else None
         signals.check()
         t_load = time.perf_counter()
         detector = load_detector(args)

@@ -10,8 +10,11 @@ and velocity arrows on the camera and bird's-eye views, and the results are
 ``SSSS`` the sequence's folder name in the KITTI tracking layout, else ``0000``) or, with
 ``--jsonl``, ``OUT/tracks.jsonl`` (one JSON object per frame). Ego poses (tracks in the world
 frame, velocities over the ground) come from ``--poses FILE`` (KITTI odometry format, one line
-per frame) or, for a sequence in the KITTI tracking layout (``--clip`` too), its
-``poses/SSSS.txt``; their count must equal the stream's frames.
+per frame; its count must equal the stream's frames) or else, found by themselves and said
+in a printed line: a KITTI tracking layout sequence's (``--clip`` too) ``poses/SSSS.txt``,
+else its ``oxts/SSSS.txt``; a KITTI raw drive's ``oxts/data/<frame>.txt``. OXTS packets become
+camera poses as the KITTI devkit makes them (:mod:`gac_jax.data.kitti_oxts`), through the
+sequence's calibration.
 """
 
 from __future__ import annotations
@@ -35,7 +38,8 @@ def add_tracking_arguments(group) -> None:
         "--poses",
         metavar="FILE",
         help="with --track: ego poses, one line per frame (KITTI odometry: camera -> first "
-        "frame); a tracking-layout sequence's poses/SSSS.txt is found by itself",
+        "frame); a tracking-layout sequence's poses/SSSS.txt or oxts/SSSS.txt and a KITTI raw "
+        "drive's oxts/ are found by themselves",
     )
 
 
@@ -60,18 +64,57 @@ def sequence_name(source) -> str:
     return DEFAULT_SEQUENCE
 
 
-def stream_poses(args: argparse.Namespace, source):
-    """(N, 3, 4) poses of the stream's frames, or None (checked: one per frame)."""
+def layout_poses(source) -> tuple | None:
+    """``((N, 3, 4) poses, what they came from)`` of a sequence source's frames found by its
+    layout (module docstring), or None."""
+    from gac_jax.data.kitti_oxts import camera_poses, read_oxts
     from gac_jax.data.kitti_tracking import KittiTrackingLayout
     from gac_jax.tracking import read_pose_file
 
-    path = args.poses
-    if path is None and getattr(source, "images", None):
-        located = KittiTrackingLayout.locate(Path(source.images[0]).parent)
-        if located is not None and located[0].poses(located[1]).is_file():
-            path = located[0].poses(located[1])
-    if path is None:
+    images = getattr(source, "images", None)
+    if not images:
         return None
+    located = KittiTrackingLayout.locate(Path(images[0]).parent)
+    if located is not None:
+        layout, sequence = located
+        if layout.poses(sequence).is_file():
+            path = layout.poses(sequence)
+            return read_pose_file(path, source.expected_frames), f"poses: {path}"
+        if layout.oxts(sequence).is_file():
+            path = layout.oxts(sequence)
+            packets = read_oxts(path)
+            if not all(p.stem.isdigit() for p in images):
+                raise KittiFormatError(path, "frame names are not frame numbers: no line is theirs")
+            frames = [int(p.stem) for p in images]
+            if max(frames) >= len(packets):
+                raise KittiFormatError(
+                    path, f"{len(packets)} OXTS packets for frames up to {max(frames)}"
+                )
+            return camera_poses(packets[frames], source.calibration), oxts_line(path)
+    raw = getattr(getattr(source, "files", None), "raw", None)
+    if raw is not None and raw.oxts_dir.is_dir():
+        poses = raw.poses([p.stem for p in images], source.calibration)
+        return poses, oxts_line(raw.oxts_dir)
+    return None
+
+
+def oxts_line(path) -> str:
+    return f"poses: {path} (OXTS -> camera poses as the KITTI devkit: IMU -> velodyne -> camera)"
+
+
+def stream_poses(args: argparse.Namespace, source, log=print):
+    """(N, 3, 4) poses of the stream's frames, or None (checked: one per frame): ``--poses``,
+    else those the sequence's layout holds (:func:`layout_poses`; ``log`` gets a line saying
+    which)."""
+    from gac_jax.tracking import read_pose_file
+
+    path = args.poses
+    if path is None:
+        found = layout_poses(source)
+        if found is None:
+            return None
+        log(found[1])
+        return found[0]
     if not Path(path).is_file():
         raise KittiFormatError(path, "poses file not found")
     frames = source.expected_frames

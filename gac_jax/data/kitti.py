@@ -4,7 +4,7 @@ Layout of a KITTI object root (real or generated)::
 
     ROOT/training/image_2/NNNNNN.png   left colour image
     ROOT/training/image_3/NNNNNN.png   right colour image (optional)
-    ROOT/training/calib/NNNNNN.txt     P0..P3, R0_rect, Tr_velo_to_cam
+    ROOT/training/calib/NNNNNN.txt     P0..P3, R0_rect, Tr_velo_to_cam (:mod:`kitti_calib`)
     ROOT/training/label_2/NNNNNN.txt   15 columns per object (DontCare included)
     ROOT/training/planes/NNNNNN.txt    ground plane (optional; the AVOD-style files)
     ROOT/ImageSets/{train,val,...}.txt frame ids, one per line
@@ -24,78 +24,12 @@ import numpy as np
 from gac_jax import geometry
 from gac_jax.data.files import KittiFormatError, atomic_write, read_bytes
 
-CALIB_SHAPES = {
-    "P0": (3, 4),
-    "P1": (3, 4),
-    "P2": (3, 4),
-    "P3": (3, 4),
-    "R0_rect": (3, 3),
-    "Tr_velo_to_cam": (3, 4),
-}
-
-
-@dataclasses.dataclass(frozen=True)
-class Calibration:
-    """Calibration of one KITTI frame (float64). Only ``P2`` is mandatory."""
-
-    P2: np.ndarray
-    P0: np.ndarray | None = None
-    P1: np.ndarray | None = None
-    P3: np.ndarray | None = None
-    R0_rect: np.ndarray | None = None
-    Tr_velo_to_cam: np.ndarray | None = None
-
-
-def parse_calib(text: str, path: str | os.PathLike = "<calib>") -> Calibration:
-    """Parses the text of a KITTI ``calib/NNNNNN.txt`` file."""
-    values: dict[str, np.ndarray] = {}
-    for lineno, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line:
-            continue
-        if ":" not in line:
-            raise KittiFormatError(path, f"expected 'KEY: v1 v2 ...', got {line[:40]!r}", lineno)
-        key, rest = line.split(":", 1)
-        key = key.strip()
-        if key not in CALIB_SHAPES:
-            continue  # e.g. Tr_imu_to_velo: not needed
-        shape = CALIB_SHAPES[key]
-        fields = rest.split()
-        n = shape[0] * shape[1]
-        if len(fields) != n:
-            raise KittiFormatError(path, f"{key} needs {n} numbers, found {len(fields)}", lineno)
-        try:
-            arr = np.array([float(f) for f in fields], dtype=np.float64).reshape(shape)
-        except ValueError:
-            bad = next(f for f in fields if not _is_float(f))
-            raise KittiFormatError(path, f"{key}: non-numeric value {bad!r}", lineno) from None
-        if not np.all(np.isfinite(arr)):
-            raise KittiFormatError(path, f"{key}: non-finite value", lineno)
-        values[key] = arr
-    if "P2" not in values:
-        raise KittiFormatError(path, "calibration has no P2 (the left colour camera projection)")
-    for key in ("P2", "P3"):
-        if key in values and abs(np.linalg.det(values[key][:, :3])) < 1e-12:
-            raise KittiFormatError(path, f"{key} is singular")
-    return Calibration(**values)
-
-
-def read_calib(path: str | os.PathLike) -> Calibration:
-    return parse_calib(read_bytes(path, "calibration file").decode("utf-8", "replace"), path)
-
-
-def format_calib(calib: Calibration) -> str:
-    lines = []
-    for key in ("P0", "P1", "P2", "P3", "R0_rect", "Tr_velo_to_cam"):
-        arr = getattr(calib, key)
-        if arr is not None:
-            lines.append(f"{key}: " + " ".join(f"{v:.12e}" for v in np.ravel(arr)))
-    return "\n".join(lines) + "\n"
-
-
-def write_calib(path: str | os.PathLike, calib: Calibration) -> None:
-    with atomic_write(path) as f:
-        f.write(format_calib(calib))
+# Calibration files of every KITTI format (gac_jax.data.kitti_calib), importable from here too.
+from gac_jax.data.kitti_calib import Calibration as Calibration
+from gac_jax.data.kitti_calib import format_calib as format_calib
+from gac_jax.data.kitti_calib import parse_calib as parse_calib
+from gac_jax.data.kitti_calib import read_calib as read_calib
+from gac_jax.data.kitti_calib import write_calib as write_calib
 
 
 def parse_plane(text: str, path: str | os.PathLike = "<plane>") -> np.ndarray:

@@ -4,7 +4,7 @@ Layout of a KITTI-depth root (real or generated)::
 
     ROOT/data_depth_annotated/{train,val}/<drive>/proj_depth/groundtruth/image_0{2,3}/NNNNNNNNNN.png
     ROOT/raw/<date>/<drive>/image_0{2,3}/data/NNNNNNNNNN.png
-    ROOT/raw/<date>/calib_cam_to_cam.txt
+    ROOT/raw/<date>/calib_cam_to_cam.txt                (read by :mod:`gac_jax.data.kitti_calib`)
     ROOT/planes/<drive>/NNNNNNNNNN.txt                  (optional: the frame's ground plane)
 
 ``<drive>`` is e.g. ``2011_09_26_drive_0001_sync`` and ``<date>`` its first 10
@@ -43,74 +43,6 @@ from gac_jax.data.files import KittiFormatError, atomic_write, read_bytes
 CAMERAS = (2, 3)
 _DRIVE_RE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_\d{4}_sync$")
 _FRAME_RE = re.compile(r"^\d{10}$")
-
-
-@dataclasses.dataclass(frozen=True)
-class RawCalibration:
-    """Rectified projections of one KITTI raw recording day (``calib_cam_to_cam.txt``).
-
-    Attributes:
-      P_rect: camera index -> (3, 4) float64 projection of that rectified camera
-        (maps points of the rectified camera-0 frame to its pixels).
-      S_rect: camera index -> (height, width) of the rectified images.
-    """
-
-    P_rect: dict[int, np.ndarray]
-    S_rect: dict[int, tuple[int, int]]
-
-
-def parse_cam_to_cam(text: str, path: str | os.PathLike = "<calib_cam_to_cam>") -> RawCalibration:
-    """Parses ``calib_cam_to_cam.txt``: keeps ``P_rect_0X`` (12 numbers) and ``S_rect_0X`` (W H)."""
-    P_rect: dict[int, np.ndarray] = {}
-    S_rect: dict[int, tuple[int, int]] = {}
-    for lineno, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line:
-            continue
-        if ":" not in line:
-            raise KittiFormatError(path, f"expected 'KEY: v1 v2 ...', got {line[:40]!r}", lineno)
-        key, rest = (s.strip() for s in line.split(":", 1))
-        m = re.fullmatch(r"(P_rect|S_rect)_0(\d)", key)
-        if m is None:
-            continue  # calib_time, K_0X, D_0X, R_0X, T_0X, R_rect_0X: not needed
-        fields = rest.split()
-        n = 12 if m.group(1) == "P_rect" else 2
-        if len(fields) != n:
-            raise KittiFormatError(path, f"{key} needs {n} numbers, found {len(fields)}", lineno)
-        try:
-            values = np.array([float(f) for f in fields], dtype=np.float64)
-        except ValueError:
-            bad = next(f for f in fields if not _is_float(f))
-            raise KittiFormatError(path, f"{key}: non-numeric value {bad!r}", lineno) from None
-        if not np.all(np.isfinite(values)):
-            raise KittiFormatError(path, f"{key}: non-finite value", lineno)
-        cam = int(m.group(2))
-        if m.group(1) == "P_rect":
-            P = values.reshape(3, 4)
-            if abs(np.linalg.det(P[:, :3])) < 1e-12:
-                raise KittiFormatError(path, f"{key} is singular", lineno)
-            P_rect[cam] = P
-        else:
-            width, height = values
-            if width <= 0 or height <= 0 or width != int(width) or height != int(height):
-                raise KittiFormatError(path, f"{key} must be two positive integers (W H)", lineno)
-            S_rect[cam] = (int(height), int(width))
-    if not P_rect:
-        raise KittiFormatError(path, "no P_rect_0X entries (not a calib_cam_to_cam.txt file?)")
-    return RawCalibration(P_rect=P_rect, S_rect=S_rect)
-
-
-def read_cam_to_cam(path: str | os.PathLike) -> RawCalibration:
-    return parse_cam_to_cam(read_bytes(path, "calibration file").decode("utf-8", "replace"), path)
-
-
-def projection_for_camera(
-    calib: RawCalibration, camera: int, path: str | os.PathLike
-) -> np.ndarray:
-    """``P_rect_0<camera>`` or a KittiFormatError naming ``path``."""
-    if camera not in calib.P_rect:
-        raise KittiFormatError(path, f"calibration has no P_rect_0{camera}")
-    return calib.P_rect[camera]
 
 
 def _is_float(s: str) -> bool:

@@ -3,11 +3,14 @@
 Layout of a tracking root (KITTI tracking, plus planes and poses)::
 
     ROOT/training/image_02/SSSS/NNNNNN.png    left colour images (SSSS: 4-digit sequence)
-    ROOT/training/calib/SSSS.txt              the sequence's calibration (P0..P3, R0_rect,
-                                              Tr_velo_to_cam: the object format's keys)
+    ROOT/training/calib/SSSS.txt              the sequence's calibration (KITTI tracking's
+                                              P0:..P3:, R_rect, Tr_velo_cam, Tr_imu_velo, or
+                                              the object format's keys: :mod:`kitti_calib`)
     ROOT/training/label_02/SSSS.txt           labels of every frame, one object a line
     ROOT/training/planes/SSSS/NNNNNN.txt      each frame's ground plane (AVOD format, optional)
     ROOT/training/poses/SSSS.txt              one line per frame: row-major (3, 4) pose (optional)
+    ROOT/training/oxts/SSSS.txt               one OXTS packet per frame (KITTI tracking; the
+                                              poses where poses/ has none: :mod:`kitti_oxts`)
 
 A label line is ``frame track_id type truncated occluded alpha x1 y1 x2 y2 h w l x y z
 rotation_y`` (17 columns). As in KITTI tracking, ``truncated`` is a level: 0 (in the
@@ -29,6 +32,7 @@ import numpy as np
 from gac_jax.data import kitti
 from gac_jax.data.files import KittiFormatError, atomic_write, read_bytes
 from gac_jax.data.kitti import KittiObjects
+from gac_jax.data.kitti_oxts import camera_poses, read_oxts
 
 TRUNCATION_LEVELS = (0.0, 0.5)  # truncated fraction > 0 -> level 1, >= 0.5 -> level 2
 
@@ -122,7 +126,7 @@ class TrackingFrame:
       P2: (3, 4) the sequence's left projection.
       plane: (4,) ground plane (None without ``planes/``).
       labels: the frame's labels (None without ``label_02/``; empty if it has no line).
-      pose: (3, 4) camera-to-world (None without ``poses/``).
+      pose: (3, 4) camera-to-world (None without ``poses/`` or ``oxts/``).
     """
 
     sequence: str
@@ -163,6 +167,9 @@ class KittiTrackingLayout(kitti.KittiRoot):
     def poses(self, sequence: str) -> Path:
         return self.frames_dir / "poses" / f"{sequence}.txt"
 
+    def oxts(self, sequence: str) -> Path:
+        return self.frames_dir / "oxts" / f"{sequence}.txt"
+
     def sequences(self) -> list[str]:
         """The sequences (folders of ``image_02``), sorted."""
         images = self.frames_dir / "image_02"
@@ -190,16 +197,30 @@ class KittiTrackingLayout(kitti.KittiRoot):
         path = self.poses(sequence)
         return parse_poses(read_bytes(path, "poses file").decode("utf-8", "replace"), path)
 
+    def read_oxts_poses(self, sequence: str) -> np.ndarray:
+        """(N, 3, 4) camera poses of ``oxts/SSSS.txt`` (line k: frame k), relative to frame 0,
+        through the sequence's calibration (:func:`gac_jax.data.kitti_oxts.camera_poses`)."""
+        return camera_poses(read_oxts(self.oxts(sequence)), kitti.read_calib(self.calib(sequence)))
+
+    def sequence_poses(self, sequence: str) -> tuple[np.ndarray, Path] | None:
+        """``(poses, file)`` of a sequence: ``poses/SSSS.txt``, else ``oxts/SSSS.txt``;
+        None without either."""
+        if self.poses(sequence).exists():
+            return self.read_poses(sequence), self.poses(sequence)
+        if self.oxts(sequence).exists():
+            return self.read_oxts_poses(sequence), self.oxts(sequence)
+        return None
+
     def frames(self, sequence: str) -> Iterator[TrackingFrame]:
-        """The frames of a sequence in order, with whatever of planes/labels/poses exists."""
+        """The frames of a sequence in order, with whatever of planes/labels/poses exists
+        (poses: :meth:`sequence_poses`)."""
         P2 = self.read_P2(sequence)
         numbers = self.frame_numbers(sequence)
         labels = self.read_labels(sequence) if self.label(sequence).exists() else None
-        poses = self.read_poses(sequence) if self.poses(sequence).exists() else None
-        if poses is not None and numbers and len(poses) <= numbers[-1]:
-            raise KittiFormatError(
-                self.poses(sequence), f"{len(poses)} poses for frames up to {numbers[-1]}"
-            )
+        found = self.sequence_poses(sequence)
+        poses = None if found is None else found[0]
+        if found is not None and numbers and len(poses) <= numbers[-1]:
+            raise KittiFormatError(found[1], f"{len(poses)} poses for frames up to {numbers[-1]}")
         empty = TrackLabels(KittiObjects.empty(), np.zeros(0, np.int64))
         for k in numbers:
             plane_path = self.plane(sequence, k)

@@ -35,11 +35,11 @@ from gac_jax.data.files import (
 from gac_jax.data.kitti import (
     KittiObjectLayout,
     KittiObjects,
-    parse_calib,
     parse_label,
     parse_plane,
     read_split,
 )
+from gac_jax.data.kitti_calib import Calibration, parse_calib, read_calib
 
 OBJECT_DATASET = "gac_kitti_object"
 ALL_FRAMES = "frames"  # prepared split of every frame when a root has no ImageSets
@@ -270,15 +270,13 @@ class KittiDepthSource:
                             line,
                         )
                 self.frames.append(frame)
-        self._calib: dict[str, kitti_depth.RawCalibration] = {}
+        self._calib: dict[str, Calibration] = {}
 
     def _projection(self, frame: kitti_depth.DepthFrame) -> np.ndarray:
         date = kitti_depth.drive_date(frame.drive)
         if date not in self._calib:
-            self._calib[date] = kitti_depth.read_cam_to_cam(self.layout.calib(frame.drive))
-        return kitti_depth.projection_for_camera(
-            self._calib[date], frame.camera, self.layout.calib(frame.drive)
-        )
+            self._calib[date] = read_calib(self.layout.calib(frame.drive), camera=None)
+        return self._calib[date].projection(frame.camera)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -457,8 +455,8 @@ class TfdsDepthSource:
         rec = self._parts[part][i - int(self._offsets[part])]
         frame_id, camera = _text(rec["frame_id"]), int(rec["camera"])
         base = f"{self.path}[{depth_split_name(self.split, camera)}]/{frame_id}"
-        calib = kitti_depth.parse_cam_to_cam(_text(rec["calib"]), f"{base}/calib_cam_to_cam")
-        P = kitti_depth.projection_for_camera(calib, camera, f"{base}/calib_cam_to_cam")
+        calib = parse_calib(_text(rec["calib"]), f"{base}/calib_cam_to_cam", camera)
+        P = calib.projection(camera)
         where = {"image": f"{base}/image", "depth": f"{base}/depth", "plane": f"{base}/plane"}
         plane = _text(rec["plane"]) if "plane" in rec else ""  # datasets before 1.1.0 have none
         return depth_sample_from_bytes(

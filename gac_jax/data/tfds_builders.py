@@ -225,9 +225,7 @@ class GacKittiDepth(tfds.core.GeneratorBasedBuilder):
             calib_path = lay.calib(frame.drive)
             if frame.drive not in calibs:
                 text = read_bytes(calib_path, "calibration file").decode("utf-8", "replace")
-                kitti_depth.projection_for_camera(
-                    kitti_depth.parse_cam_to_cam(text, calib_path), camera, calib_path
-                )
+                parse_calib(text, calib_path, camera)
                 calibs[frame.drive] = text
             plane_path, plane = lay.plane(frame), ""
             if plane_path.is_file():

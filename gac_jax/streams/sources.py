@@ -11,7 +11,10 @@ line (:class:`~gac_jax.data.files.KittiFormatError`, ``<input>: <problem>``).
   pace whether or not they are taken).
 * :class:`SequenceSource`: a folder of images, sorted by name; in the KITTI tracking layout
   (``ROOT/training/image_02/SSSS/NNNNNN.png``) the calibration ``ROOT/training/calib/SSSS.txt``
-  and the per-frame planes ``ROOT/training/planes/SSSS/NNNNNN.txt`` are found by themselves.
+  and the per-frame planes ``ROOT/training/planes/SSSS/NNNNNN.txt`` are found by themselves;
+  in the KITTI raw layout (``DATE/DATE_drive_NNNN_sync/image_02/data``, its ``image_02`` or
+  the drive folder) the day's ``DATE/calib_cam_to_cam.txt`` (with the day's other two files)
+  and the frames' times ``image_02/timestamps.txt`` (:mod:`gac_jax.data.kitti_raw`).
 * :class:`PacedSource`: another source delivered at a fixed rate, as a camera would (a
   recording replayed live: ``--realtime`` on a file).
 
@@ -33,7 +36,9 @@ import numpy as np
 
 from gac_jax.api.inputs import InputError, check_fits, check_projection
 from gac_jax.data.files import KittiFormatError, read_image
-from gac_jax.data.kitti import read_calib, read_plane
+from gac_jax.data.kitti import read_plane
+from gac_jax.data.kitti_calib import read_calib
+from gac_jax.data.kitti_raw import RawDrive
 from gac_jax.data.kitti_tracking import KittiTrackingLayout
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -59,6 +64,8 @@ class Frame:
       P2: (3, 4) float64 projection of the frame.
       plane: (4,) ground plane in the camera frame; None: the detector's level camera.
       t_read: ``time.perf_counter()`` when reading the frame began (latency starts here).
+      time: seconds since the first frame by the recording's own clock (a KITTI raw drive's
+        ``timestamps.txt``); None: the source has none.
     """
 
     index: int
@@ -67,15 +74,13 @@ class Frame:
     P2: np.ndarray
     plane: np.ndarray | None
     t_read: float
+    time: float | None = None
 
 
 def load_projection(path: str | os.PathLike, camera: int = 2) -> np.ndarray:
-    """(3, 4) ``P2`` (``camera`` 3: ``P3``) of a KITTI calibration file."""
-    calib = read_calib(path)
-    P = calib.P2 if camera == 2 else calib.P3
-    if P is None:
-        raise KittiFormatError(path, f"calibration has no P{camera}")
-    return np.asarray(P, np.float64)
+    """(3, 4) ``P2`` (``camera`` 3: ``P3``) of a KITTI calibration file of any format
+    (:func:`gac_jax.data.kitti_calib.read_calib`)."""
+    return np.asarray(read_calib(path, camera).projection(camera), np.float64)
 
 
 def check_calibration(P2: np.ndarray, size: tuple[int, int], calib: str, frames: str) -> None:
@@ -249,27 +254,65 @@ def sequence_images(folder: Path) -> list[Path]:
     return images
 
 
-def sequence_files(folder: Path) -> tuple[Path | None, Path | None]:
-    """``(calibration, planes folder)`` of an image sequence folder: in the KITTI tracking
+@dataclasses.dataclass(frozen=True)
+class SequenceFiles:
+    """Where an image sequence's frames and files are, by its folder's layout.
+
+    Attributes:
+      images: the folder of the frames.
+      calib: the calibration the layout names (None: none; with ``layout`` "KITTI raw" the
+        day's ``calib_cam_to_cam.txt`` even where it is missing, to be named in the error).
+      planes: the folder of per-frame plane files (``<stem>.txt``), or None.
+      layout: ``"KITTI tracking"``, ``"KITTI raw"`` or ``"folder"``.
+      raw: the KITTI raw drive (:class:`~gac_jax.data.kitti_raw.RawDrive`), or None.
+    """
+
+    images: Path
+    calib: Path | None
+    planes: Path | None
+    layout: str
+    raw: RawDrive | None = None
+
+
+def sequence_files(folder: Path, camera: int = 2) -> SequenceFiles:
+    """The files of an image sequence ``folder`` (camera ``camera``): in the KITTI tracking
     layout (``folder`` = ``ROOT/training/image_02/SSSS``) ``ROOT/training/calib/SSSS.txt`` and
-    ``ROOT/training/planes/SSSS``; else ``folder/calib.txt`` (if present) and no planes."""
+    ``ROOT/training/planes/SSSS``; in the KITTI raw layout (``folder`` =
+    ``DATE/DATE_drive_NNNN_sync`` or its ``image_0N`` or ``image_0N/data``) the frames of
+    ``image_0N/data`` and ``DATE/calib_cam_to_cam.txt``; else ``folder/calib.txt`` (if
+    present) and no planes."""
+    folder = Path(folder)
     located = KittiTrackingLayout.locate(folder)
     if located is not None:
         layout, sequence = located
-        return layout.calib(sequence), layout.plane(sequence, 0).parent
-    return (folder / "calib.txt" if (folder / "calib.txt").is_file() else None), None
+        planes = layout.plane(sequence, 0).parent
+        return SequenceFiles(folder, layout.calib(sequence), planes, "KITTI tracking")
+    drive = RawDrive.locate(folder, camera)
+    if drive is not None:
+        return SequenceFiles(drive.images, drive.calib, None, "KITTI raw", drive)
+    calib = folder / "calib.txt"
+    return SequenceFiles(folder, calib if calib.is_file() else None, None, "folder")
 
 
 class SequenceSource:
     """An image folder read as an ordered sequence (frame ids: the images' stems).
 
     Args:
-      folder: the images (sorted by name).
-      calib: its calibration file; None: :func:`tracking_calibration`.
+      folder: the images (sorted by name), or a KITTI raw drive folder or its ``image_0N``
+        (:func:`sequence_files`).
+      calib: its calibration file (any KITTI format, or a raw day's folder); None: the one
+        :func:`sequence_files` finds.
       plane: one ground plane for every frame; None: the tracking layout's per-frame
         ``ROOT/training/planes/SSSS/<stem>.txt`` where present, else the level camera.
       camera: 2 (``P2``) or 3 (``P3``) of the calibration.
       fps: the rate of the annotated video (KITTI records at 10 Hz).
+
+    Attributes:
+      calibration: the :class:`~gac_jax.data.kitti_calib.Calibration` read.
+      files: the :class:`SequenceFiles` of the folder.
+      times: (N,) seconds of the frames since the first (a KITTI raw drive's
+        ``timestamps.txt``), or None.
+      found: one line per file found by the layout rather than given (to print).
     """
 
     live = False
@@ -277,18 +320,45 @@ class SequenceSource:
     def __init__(self, folder, calib=None, plane=None, camera: int = 2, fps: float = 10.0):
         folder = Path(folder)
         self.name = os.fspath(folder)
-        self.images = sequence_images(folder)
+        self.files = sequence_files(folder, camera)
+        raw = self.files.raw
+        if raw is not None and raw.camera != camera:
+            raise KittiFormatError(
+                folder,
+                f"frames of camera {raw.camera} (image_0{raw.camera}) but P{camera} chosen: "
+                f"pass --calib-camera {raw.camera}",
+            )
+        self.images = sequence_images(self.files.images)
         self.expected_frames = len(self.images)
-        layout_calib, self.planes_dir = sequence_files(folder)
+        self.planes_dir = self.files.planes
+        self.found: list[str] = []
         if calib is None:
-            calib = layout_calib
-            if calib is None:
-                raise KittiFormatError(
-                    folder,
-                    "no calibration found (not in the KITTI tracking layout "
-                    f"ROOT/training/image_02/SSSS, no {folder / 'calib.txt'}); pass --calib FILE",
+            calib = self.files.calib
+            if calib is None or not calib.is_file():
+                looked = (
+                    f"no {calib} (the KITTI raw layout)"
+                    if calib is not None
+                    else "not in the KITTI tracking layout ROOT/training/image_02/SSSS, "
+                    f"no {folder / 'calib.txt'}"
                 )
-        self.P2 = load_projection(calib, camera)
+                raise KittiFormatError(
+                    folder, f"no calibration found ({looked}); pass --calib FILE"
+                )
+            layout = self.files.layout
+            self.found.append(
+                f"calibration: {calib}" + (f" ({layout} layout)" if layout != "folder" else "")
+            )
+        self.calibration = read_calib(calib, camera)
+        self.P2 = np.asarray(self.calibration.projection(camera), np.float64)
+        self.times = None
+        if raw is not None and raw.timestamps.is_file():
+            stems = [p.stem for p in self.images]
+            if not all(s.isdigit() for s in stems):
+                raise KittiFormatError(
+                    raw.timestamps, "frame names are not frame numbers: no line is theirs"
+                )
+            self.times = raw.frame_times([int(s) for s in stems])
+            self.found.append(f"frame times: {raw.timestamps}")
         self.plane = plane
         self.fps = fps
         self.index = 0
@@ -309,7 +379,8 @@ class SequenceSource:
         path = self.images[i]
         image = read_image(path)
         _check_size(image, self.size, os.fspath(path), "the first image of the sequence is")
-        return Frame(i, path.stem, image, self.P2, self.frame_plane(path), t0)
+        when = None if self.times is None else float(self.times[i])
+        return Frame(i, path.stem, image, self.P2, self.frame_plane(path), t0, when)
 
     def check_complete(self) -> None:
         pass

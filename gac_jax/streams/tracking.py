@@ -3,8 +3,9 @@ files the tracks go to.
 
 * :class:`TrackingStage`: :class:`gac_jax.api.Tracker3D` fed in frame order from the
   pipeline's finish stage (``update(frame, detections) -> tracks``, ``draw(frame, tracks)``).
-  A frame's time is its index over the stream's fps, or, live (``realtime``), the moment it
-  was read, so frames a live stream dropped make a longer step. With ``poses`` (camera ->
+  A frame's time is its own (:attr:`Frame.time`: a KITTI raw drive's ``timestamps.txt``),
+  else its index over the stream's fps, or, live (``realtime``), the moment it was read, so
+  frames a live stream dropped make a longer step. With ``poses`` (camera ->
   world of every frame, by the frame's index) the tracks live in the world frame.
 * :class:`KittiTrackingResults`: ``DIR/SSSS.txt``, one KITTI tracking result line per object
   per frame (``frame id type -1 -1 alpha x1 y1 x2 y2 h w l x y z ry score``), appended and
@@ -37,7 +38,8 @@ class TrackingStage:
 
     Args:
       tracker: the :class:`Tracker3D`.
-      fps: the stream's frames per second (frame times ``index / fps``).
+      fps: the stream's frames per second (frame times ``index / fps`` where a frame has no
+        ``time`` of its own).
       realtime: frame times are when each frame was read (``Frame.t_read``).
       poses: (N, 3, 4) camera -> world of frame index 0..N-1, or None.
       scale: the annotated picture's size relative to the frame (``--video-scale``).
@@ -62,7 +64,10 @@ class TrackingStage:
                     "poses", f"frame {frame.index} has none (they cover 0 to {len(self.poses) - 1})"
                 )
             pose = self.poses[frame.index]
-        timestamp = frame.t_read if self.realtime else frame.index / self.fps
+        if self.realtime:
+            timestamp = frame.t_read
+        else:
+            timestamp = frame.index / self.fps if frame.time is None else frame.time
         return self.tracker.update(detections, pose=pose, timestamp=timestamp, plane=frame.plane)
 
     def draw(self, frame: Frame, tracks) -> np.ndarray:
