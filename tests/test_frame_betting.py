@@ -165,7 +165,7 @@ def simulate(draw, looks, rule, fp_cap=fb.FP_CAP, seed=0, runs=RUNS, chunk=200):
 
 # the earlier rule said within at the margin in 12 % of these runs (crowded frames, one look),
 # 20 / 17 % (easy, bursts of 8: one look / four looks), 11 % (moderate, bursts of 8) and
-# 8.6 / 13 % (bursts of 20); the rule now at most 1.6 % (a smaller cap, below)
+# 8.6 / 13 % (bursts of 20); the rule now at most 2.3 % (a smaller cap, below)
 CASES = [
     ("recall lost in crowded frames", (1050,)),
     ("recall lost in crowded frames", FOUR_LOOKS),

@@ -209,23 +209,54 @@ def interval(
     return float(100.0 * lo), float(100.0 * hi)
 
 
+def _growth_frames(d, n, x: float, bounds: FrameBounds, alpha: float, limit: int) -> int | None:
+    """A first estimate of :func:`frames_to_reject` (its early frames' smaller bets left out):
+    the fewest ``N`` with ``N mean(log(1 + lam_N X)) >= log(1 / alpha)`` over the guard
+    frames, ``lam_N`` the bet at ``N`` frames once the running mean square has settled; None
+    beyond ``limit``."""
+    ratio = d.sum() / n.sum() if n.sum() else 0.0
+    spread = float(np.mean((d - ratio * n) ** 2))
+    level = math.log(1.0 / alpha)
+    cap = BET_LIMIT / max(float(bounds.loss(x)), 1e-12)
+    steps = d - x * n
+
+    def enough(frames: int) -> bool:
+        bet = cap if spread == 0 else min(cap, math.sqrt(2.0 * level / (frames * spread)))
+        with np.errstate(invalid="ignore"):
+            return frames * float(np.mean(np.log1p(bet * steps))) >= level
+
+    lo, hi = 0, 1
+    while not enough(hi):
+        lo, hi = hi, hi * 2
+        if hi > limit:
+            return None
+    while hi - lo > max(1, lo // 100):
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if enough(mid) else (mid, hi)
+    return hi
+
+
 def frames_to_reject(
     d, n, x: float, bounds: FrameBounds, alpha: float, limit: int = FRAMES_LIMIT
 ) -> int | None:
     """The fewest frames (to 1 %) at which the "delta > x" test would reject at ``alpha`` if
     the guard frames ``d, n`` ``(F,)`` came again in the same order (repeated); None when the
     observed difference is not above ``x``, the frames break the bound, or more than
-    ``limit`` frames would be needed."""
+    ``limit`` frames would be needed. The search starts at an estimate from the frames'
+    mean growth of the capital, then runs the test itself."""
     d, n = np.asarray(d, np.float64), np.asarray(n, np.float64)
     if not len(d) or not bounds.admissible(d, n) or d.sum() - x * n.sum() <= 0:
+        return None
+    guess = _growth_frames(d, n, x, bounds, alpha, 2 * limit)
+    if guess is None:
         return None
 
     def decided(frames: int) -> bool:
         return bool(rejects(np.resize(d, frames), np.resize(n, frames), x, bounds, alpha))
 
-    lo, hi = 0, len(d)
+    lo, hi = 0, max(len(d), int(0.9 * guess))
     while not decided(hi):
-        lo, hi = hi, hi * 2
+        lo, hi = hi, int(hi * 1.25) + 1
         if hi > limit:
             return None
     while hi - lo > max(1, lo // 100):
