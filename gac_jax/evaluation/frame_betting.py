@@ -225,14 +225,20 @@ def _growth_frames(d, n, x: float, bounds: FrameBounds, alpha: float, limit: int
         with np.errstate(invalid="ignore"):
             return frames * float(np.mean(np.log1p(bet * steps))) >= level
 
-    lo, hi = 0, 1
-    while not enough(hi):
-        lo, hi = hi, hi * 2
+    return _fewest(enough, 1, 2.0, limit)
+
+
+def _fewest(holds, start: int, growth: float, limit: int) -> int | None:
+    """The fewest frames (to 1 %) for which ``holds(frames)`` (monotone): from ``start``,
+    growing by ``growth`` until it holds, then bisection; None beyond ``limit``."""
+    lo, hi = 0, start
+    while not holds(hi):
+        lo, hi = hi, int(hi * growth) + 1
         if hi > limit:
             return None
     while hi - lo > max(1, lo // 100):
         mid = (lo + hi) // 2
-        lo, hi = (lo, mid) if enough(mid) else (mid, hi)
+        lo, hi = (lo, mid) if holds(mid) else (mid, hi)
     return hi
 
 
@@ -254,12 +260,4 @@ def frames_to_reject(
     def decided(frames: int) -> bool:
         return bool(rejects(np.resize(d, frames), np.resize(n, frames), x, bounds, alpha))
 
-    lo, hi = 0, max(len(d), int(0.9 * guess))
-    while not decided(hi):
-        lo, hi = hi, int(hi * 1.25) + 1
-        if hi > limit:
-            return None
-    while hi - lo > max(1, lo // 100):
-        mid = (lo + hi) // 2
-        lo, hi = (lo, mid) if decided(mid) else (mid, hi)
-    return hi
+    return _fewest(decided, max(len(d), int(0.9 * guess)), 1.25, limit)
