@@ -228,10 +228,11 @@ def _growth_frames(d, n, x: float, bounds: FrameBounds, alpha: float, limit: int
     return _fewest(enough, 1, 2.0, limit)
 
 
-def _fewest(holds, start: int, growth: float, limit: int) -> int | None:
-    """The fewest frames (to 1 %) for which ``holds(frames)`` (monotone): from ``start``,
-    growing by ``growth`` until it holds, then bisection; None beyond ``limit``."""
-    lo, hi = 0, start
+def _fewest(holds, start: int, growth: float, limit: int, above: int = 0) -> int | None:
+    """The fewest frames above ``above`` (to 1 %) for which ``holds(frames)`` (taken as
+    monotone): from ``start``, growing by ``growth`` until it holds, then bisection; None
+    beyond ``limit``."""
+    lo, hi = above, max(start, above + 1)
     while not holds(hi):
         lo, hi = hi, int(hi * growth) + 1
         if hi > limit:
@@ -245,11 +246,11 @@ def _fewest(holds, start: int, growth: float, limit: int) -> int | None:
 def frames_to_reject(
     d, n, x: float, bounds: FrameBounds, alpha: float, limit: int = FRAMES_LIMIT
 ) -> int | None:
-    """The fewest frames (to 1 %) at which the "delta > x" test would reject at ``alpha`` if
-    the guard frames ``d, n`` ``(F,)`` came again in the same order (repeated); None when the
-    observed difference is not above ``x``, the frames break the bound, or more than
-    ``limit`` frames would be needed. The search starts at an estimate from the frames'
-    mean growth of the capital, then runs the test itself."""
+    """The fewest frames (more than ``F``, to 1 %) at which the "delta > x" test would reject
+    at ``alpha`` if the guard frames ``d, n`` ``(F,)`` came again in the same order
+    (repeated); None when the observed difference is not above ``x``, the frames break the
+    bound, or more than ``limit`` frames would be needed. The search starts at an estimate
+    from the frames' mean growth of the capital, then runs the test itself."""
     d, n = np.asarray(d, np.float64), np.asarray(n, np.float64)
     if not len(d) or not bounds.admissible(d, n) or d.sum() - x * n.sum() <= 0:
         return None
@@ -260,4 +261,4 @@ def frames_to_reject(
     def decided(frames: int) -> bool:
         return bool(rejects(np.resize(d, frames), np.resize(n, frames), x, bounds, alpha))
 
-    return _fewest(decided, max(len(d), int(0.9 * guess)), 1.25, limit)
+    return _fewest(decided, int(0.9 * guess), 1.25, limit, above=len(d))
