@@ -184,6 +184,8 @@ def guard_workdir(args) -> dict:
     from gac_jax.training import workdir_lock
 
     candidates = parse_candidates(args.candidates)
+    if args.fp_cap is not None and not args.fp_cap > 0:
+        raise KittiFormatError("--fp-cap", f"must be positive, got {args.fp_cap}")
     threads = limit_cpu_threads(args.threads)
     for runtime, precision, _ in candidates:
         resolve_runtime(runtime, precision)  # exits 2 with one line when it cannot run here
@@ -214,8 +216,6 @@ def guard_workdir(args) -> dict:
     thresholds = guard_criteria.score_thresholds(min_score)
     ap_margin = paired_guard.AP_MARGIN if args.ap_margin is None else args.ap_margin
     fp_cap = paired_guard.FP_CAP if args.fp_cap is None else args.fp_cap
-    if not fp_cap > 0:
-        raise KittiFormatError("--fp-cap", f"must be positive, got {args.fp_cap}")
     resamples = ap_bootstrap.RESAMPLES if args.resamples is None else args.resamples
     if resamples < 2:
         raise KittiFormatError("--resamples", f"must be at least 2, got {resamples}")
