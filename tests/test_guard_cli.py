@@ -132,6 +132,9 @@ def test_bad_candidates_are_one_line(capsys, tmp_path):
         assert info.value.code == 2 and words in capsys.readouterr().err
     assert guard.main(["--workdir", str(tmp_path), "--candidates", "openvino:f32"]) == 2
     assert "not a trained workdir" in capsys.readouterr().err
+    argv = ["--workdir", str(tmp_path), "--candidates", "openvino:f32", "--fp-cap", "0"]
+    assert guard.main(argv) == 2
+    assert "--fp-cap: must be positive, got 0.0" in capsys.readouterr().err
 
 
 def replace_checkpoint(workdir, step: int, seed: int) -> None:

@@ -1,19 +1,11 @@
-"""Intervals of the paired guard (gac_jax.evaluation.paired_proportions) against independent
-calculations and by simulation at the margin.
-
-A discordant table is pinned to scipy.stats' exact binomial intervals combined by hand, and a
-frame-clustered one to a float64 hand computation of its design effect. The simulation draws
-guard sets whose true found-rate difference is exactly the margin (-0.5 points), with
-discordances of independent objects or of whole frames (2.7 objects per frame, as the hard
-difficulty), and looks at them the way the guard is used (one look, and four looks on growing
-frame sets, the alpha spent per look): P(within) must stay at most alpha, within three
-standard errors of the simulation. The object-level interval with one alpha for every look
-fails the same check on clustered discordances, so the check can fail.
+"""Paired proportions (gac_jax.evaluation.paired_proportions) against independent
+calculations: a discordant table is pinned to scipy.stats' exact binomial intervals combined
+by hand, McNemar and Holm to hand values, the earlier rule's design effect to a float64 hand
+computation, and the alpha spent over looks. The guard's current count intervals and their
+simulations at the margin: tests/test_frame_betting.py.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 import pytest
@@ -21,8 +13,6 @@ import pytest
 from gac_jax.evaluation import paired_proportions as pp
 
 MARGIN, ALPHA = 0.5, 0.05
-RUNS = 1500
-LOOKS = (500, 1000, 2000, 4000)  # frames at each look (nested, growing)
 
 
 def test_a_discordant_table_against_scipy_and_by_hand():
@@ -81,84 +71,3 @@ def test_looks_spend_at_most_alpha():
     assert spent[0] == ALPHA / 2 and sum(spent) < ALPHA
     with pytest.raises(ValueError, match="looks count from 1"):
         pp.look_alpha(ALPHA, 0)
-
-
-def _simulate(q: float, lost: float, clustered: bool, seed: int, interval) -> tuple[float, float]:
-    """``(P(within at look 1), P(within at any of the looks))`` over ``RUNS`` guard runs of a
-    true found-rate difference of exactly -``MARGIN`` points: each object (independent) or
-    each frame (clustered: all its objects) is discordant with probability ``q``, lost with
-    probability ``lost`` (``q (2 lost - 1) = MARGIN / 100``)."""
-    assert q * (2 * lost - 1) == pytest.approx(MARGIN / 100)
-    rng = np.random.default_rng(seed)
-    acc = {k: np.zeros(RUNS) for k in ("n", "r", "c", "n2", "d2", "dn", "df")}
-    within_any, first, done = np.zeros(RUNS, bool), None, 0
-    for look, frames in enumerate(LOOKS, 1):
-        shape = (RUNS, frames - done)
-        done = frames
-        n = 1.0 + rng.poisson(1.7, shape)
-        if clustered:
-            hit, gone = rng.random(shape) < q, rng.random(shape) < lost
-            r, c = np.where(hit & gone, n, 0.0), np.where(hit & ~gone, n, 0.0)
-        else:
-            m = rng.binomial(n.astype(np.int64), q)
-            r = rng.binomial(m, lost).astype(np.float64)
-            c = m - r
-        d = c - r
-        for key, v in (
-            ("n", n),
-            ("r", r),
-            ("c", c),
-            ("n2", n * n),
-            ("d2", d * d),
-            ("dn", d * n),
-            ("df", (r + c) > 0),
-        ):
-            acc[key] += v.sum(axis=1)
-        delta = (acc["c"] - acc["r"]) / acc["n"]
-        sums = {  # frame_sums of the frames so far, accumulated look by look
-            "n": acc["n"],
-            "ref_only": acc["r"],
-            "cand_only": acc["c"],
-            "frames": np.full(RUNS, float(frames)),
-            "discordant_frames": acc["df"],
-            "n_squared": acc["n2"],
-            "cluster_ss": acc["d2"] - 2 * delta * acc["dn"] + delta**2 * acc["n2"],
-        }
-        lo, hi = interval(sums, look)
-        within = (lo >= -MARGIN) & (hi <= MARGIN)
-        within_any |= within
-        first = within.mean() if first is None else first
-    return float(first), float(within_any.mean())
-
-
-def _guard(sums, look):
-    return pp.clustered_interval(sums, pp.look_alpha(ALPHA, look))[:2]
-
-
-def _objects_one_alpha(sums, look):
-    """The earlier rule: objects independent, alpha at every look."""
-    return pp.difference_interval(sums["ref_only"], sums["cand_only"], sums["n"], ALPHA)
-
-
-BOUND = ALPHA + 3 * math.sqrt(ALPHA * (1 - ALPHA) / RUNS)  # 3 standard errors of the simulation
-
-
-@pytest.mark.parametrize(
-    "q, lost, clustered",
-    [(0.005, 1.0, False), (0.02, 0.625, False), (0.005, 1.0, True), (0.02, 0.625, True)],
-)
-def test_within_at_the_margin_is_rare_for_independent_and_clustered_objects(q, lost, clustered):
-    one_look, four_looks = _simulate(q, lost, clustered, seed=11, interval=_guard)
-    assert one_look <= BOUND and four_looks <= BOUND, (one_look, four_looks)
-
-
-def _objects_spent(sums, look):
-    """Alpha spent over looks, but objects independent (no design effect)."""
-    a = pp.look_alpha(ALPHA, look)
-    return pp.difference_interval(sums["ref_only"], sums["cand_only"], sums["n"], a)
-
-
-@pytest.mark.parametrize("interval", [_objects_one_alpha, _objects_spent])
-def test_the_simulation_catches_an_interval_that_ignores_frames(interval):
-    one_look, four_looks = _simulate(0.005, 1.0, True, seed=12, interval=interval)
-    assert four_looks > BOUND, four_looks

@@ -2,8 +2,8 @@
 
     python -m gac_jax.cli.guard --workdir W --candidates openvino:int8,openvino:bf16
         [--guard-data DIR [--split val]] [--frames N] [--step N] [--margin 0.5]
-        [--ap-margin 1.0] [--resamples 200] [--heading-tolerance 30] [--int8-frames N]
-        [--int8-seed S] [--threads T] [--json OUT]
+        [--ap-margin 1.0] [--fp-cap 20] [--resamples 200] [--heading-tolerance 30]
+        [--int8-frames N] [--int8-seed S] [--threads T] [--json OUT]
 
 Runs the detector of ``W`` (latest or ``--step`` checkpoint) on the guard frames with jitted
 float32 (the reference) and with every candidate (``RUNTIME:PRECISION``, ``+heading`` for int8
@@ -13,7 +13,9 @@ with the heading kept in float32: ``openvino:int8+heading``), each exactly as ``
 with :mod:`gac_jax.evaluation.paired_guard`: paired recall at 2D@0.7, BEV@0.5/0.7, 3D@0.5/0.7
 and heading at the deployed score threshold and at 0.3 / 0.5 / 0.7 / 0.9 above it, false
 positives per frame above each, heading and centre error quantile shifts, per class and
-difficulty, and every AP entry with a paired frame bootstrap -> within / beyond / undecided
+difficulty (frames as the unit, tests by betting valid for any per-frame distribution of the
+changes within a bound: a frame changes at most its objects, or ``--fp-cap`` false positives,
+checked), and every AP entry with a paired frame bootstrap -> within / beyond / undecided
 (with the frames that would decide at the next look; a rerun on the same model is the next
 look and spends less alpha). Prints the Car AP|R40 table (all frames, difference to
 float32), each candidate's criteria that are not within, the matched detections' differences
@@ -84,6 +86,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--alpha", type=float, default=None, help="error level (0.05)")
     p.add_argument("--ap-margin", type=float, default=None, help="AP points (1.0)")
+    p.add_argument(
+        "--fp-cap",
+        type=float,
+        default=None,
+        help="false positives one frame may gain or lose, assumed and checked (20)",
+    )
     p.add_argument(
         "--resamples", type=int, default=None, help="frame-bootstrap resamples of AP (200)"
     )
@@ -176,6 +184,8 @@ def guard_workdir(args) -> dict:
     from gac_jax.training import workdir_lock
 
     candidates = parse_candidates(args.candidates)
+    if args.fp_cap is not None and not args.fp_cap > 0:
+        raise KittiFormatError("--fp-cap", f"must be positive, got {args.fp_cap}")
     threads = limit_cpu_threads(args.threads)
     for runtime, precision, _ in candidates:
         resolve_runtime(runtime, precision)  # exits 2 with one line when it cannot run here
@@ -205,6 +215,7 @@ def guard_workdir(args) -> dict:
     min_score = float(config.eval.score_threshold)
     thresholds = guard_criteria.score_thresholds(min_score)
     ap_margin = paired_guard.AP_MARGIN if args.ap_margin is None else args.ap_margin
+    fp_cap = paired_guard.FP_CAP if args.fp_cap is None else args.fp_cap
     resamples = ap_bootstrap.RESAMPLES if args.resamples is None else args.resamples
     if resamples < 2:
         raise KittiFormatError("--resamples", f"must be at least 2, got {resamples}")
@@ -233,7 +244,7 @@ def guard_workdir(args) -> dict:
         verdicts = {}
         created = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
         model = guard_verdict.model_identity(export_dir, detector.tag, detector.weights_sha256)
-        rule = _rule(margin, ap_margin, alpha, tol, min_score, thresholds, resamples)
+        rule = _rule(margin, ap_margin, alpha, tol, min_score, thresholds, resamples, fp_cap)
         for runtime, precision, heading in candidates:
             int8 = _settings(args, heading) if precision == "int8" else None
             key = guard_verdict.candidate_key(runtime, precision, int8)
@@ -242,7 +253,7 @@ def guard_workdir(args) -> dict:
             ap = ap_bootstrap.paired_ap_bootstrap(gt, ref, cand, classes, resamples)
             looks = guard_verdict.previous_looks(export_dir, model, key)
             decision = paired_guard.decide(
-                tables, len(ids), margin, alpha, len(looks) + 1, ap, ap_margin
+                tables, len(ids), margin, alpha, len(looks) + 1, ap, ap_margin, fp_cap
             )
             ap = car_ap40(evaluate_detections(gt, cand, classes=("Car",)))
             matched = paired_guard.matched_differences(ref, cand)
@@ -278,7 +289,7 @@ def guard_workdir(args) -> dict:
     return report
 
 
-def _rule(margin, ap_margin, alpha, tol, min_score, thresholds, resamples) -> dict:
+def _rule(margin, ap_margin, alpha, tol, min_score, thresholds, resamples, fp_cap) -> dict:
     """The rule a verdict was decided under (stored with it; see
     :func:`gac_jax.deploy.guard_verdict.rule_mismatch`)."""
     from gac_jax.deploy.guard_verdict import RULE_VERSION
@@ -293,8 +304,11 @@ def _rule(margin, ap_margin, alpha, tol, min_score, thresholds, resamples) -> di
         "ap_margin_points": ap_margin,
         "alpha": alpha,
         "alpha_spending": "alpha / 2^k at look k",
-        "interval": "conservative discordance interval of the counts divided by the frames' "
-        "design effect; AP: diff -+ z * paired frame-bootstrap se",
+        "interval": "tests by betting on the per-frame changes (gac_jax.evaluation."
+        "frame_betting): a frame changes at most its objects, no frame has more than the "
+        "largest guard frame, at most fp_cap false positives per frame (checked); AP: "
+        "diff -+ z * paired frame-bootstrap se",
+        "fp_cap": fp_cap,
         "heading_tolerance_deg": tol,
         "min_score": min_score,
         "score_thresholds": list(thresholds),
@@ -305,7 +319,8 @@ def _rule(margin, ap_margin, alpha, tol, min_score, thresholds, resamples) -> di
 
 def _stored(row: dict) -> dict:
     """A criterion as the verdict file keeps it."""
-    keys = ("kind", "n", "ref_only", "cand_only", "diff", "deff", "se", "limit", "status")
+    keys = ("kind", "n", "ref_only", "cand_only", "diff", "bound", "over_cap", "se", "limit")
+    keys += ("status",)
     return {k: row[k] for k in keys if k in row}
 
 

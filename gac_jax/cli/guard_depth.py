@@ -93,7 +93,7 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
         created = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
         model = guard_verdict.model_identity(export_dir, f"step{step}", ref["weights_sha256"])
         rule = {
-            "version": guard_verdict.RULE_VERSION,
+            "version": guard_verdict.DEPTH_RULE_VERSION,
             "text": "paired per-frame SILog vs jax float32 (gac_jax.evaluation.paired_depth_guard)",
             "margin_silog": margin,
             "alpha": alpha,

@@ -8,16 +8,17 @@
      "rule": {...the latest run's rule...},
      "verdicts": {"openvino:int8": {"runtime", "precision", "int8", "network": {"onnx_sha256",
         "int8_sha256", "libraries"}, "verdict": "within"|"beyond"|"undecided", "reason",
-        "frames", "guard_set", "created", "criteria", "rule": {"version": 2, "min_score",
+        "frames", "guard_set", "created", "criteria", "rule": {"version": 3, "min_score",
         "score_thresholds", "margin_points", "ap_margin_points", "alpha", "alpha_spending",
         ...}, "look", "alpha_look", "looks": [{"frames", "verdict", "created"}, ...]}, ...}}
 
 A verdict is bound to the weights it was made for by their hash (the sha256 of every array,
 :func:`gac_jax.trained.fingerprint.weights_sha256`), not by the step: a model retrained to the
 same step is "not guarded". It applies to a run only for the same weights, exported graph,
-int8 model (its IR's identity where the folder holds the int8 model of the same settings),
-runtime and quantizer versions, runtime, precision, int8 calibration settings and the rule's
-score threshold (:func:`rule_mismatch`); :func:`verdict_for` says which and why not, and
+int8 model (its IR's identity, always: an int8 model calibrated on another split, seed or
+data root is "not guarded", saying what differs), runtime and quantizer versions, runtime,
+precision, int8 calibration settings, the rule's version and its score threshold
+(:func:`rule_mismatch`); :func:`verdict_for` says which and why not, and
 :func:`precision_line` is the line ``evaluate.py`` (and ``predict``) print. Writes are
 atomic; a new guard run replaces the verdicts of the precisions it guarded and keeps the
 others when the model is the same.
@@ -174,12 +175,29 @@ def _network_differs(guarded: dict, export_dir, runtime, precision, int8) -> str
     for name, version in (guarded.get("libraries") or {}).items():
         if now["libraries"].get(name) != version:
             return f"guarded with {name} {version}, this is {now['libraries'].get(name)}"
-    # the int8 IR in the folder is compared when it was made like the guarded one (else it is
-    # rebuilt on use; NNCF's calibration is deterministic, so it comes back the same)
-    same_recipe = precision == "int8" and now["int8_made_from"] == guarded.get("int8_made_from")
-    if same_recipe and now["int8_sha256"] != guarded.get("int8_sha256"):
-        return "the int8 model differs from the one guarded (its IR's sha256)"
+    # the int8 model that runs is the one in the folder (built before this line is asked for):
+    # its IR must be the guarded one, whatever it was made from
+    if precision == "int8" and now["int8_sha256"] != guarded.get("int8_sha256"):
+        return "the int8 model differs from the one guarded: " + _int8_difference(
+            guarded.get("int8_made_from") or {}, now["int8_made_from"], now["int8_sha256"]
+        )
     return None
+
+
+def _int8_difference(guarded: dict, now: dict, ir_sha256: str | None) -> str:
+    """What differs between the guarded int8 model's recipe and the one in the folder."""
+    if ir_sha256 is None:
+        return "no int8 model in the export folder"
+    if guarded.get("source_sha256") != now.get("source_sha256"):
+        return "made from another model.onnx"
+    cal_then, cal_now = guarded.get("calibration") or {}, now.get("calibration") or {}
+    moved = [k for k in sorted(set(cal_then) | set(cal_now)) if cal_then.get(k) != cal_now.get(k)]
+    if moved:
+        shown = ", ".join(f"{k} {cal_then.get(k)!r} -> {cal_now.get(k)!r}" for k in moved[:3])
+        return f"calibrated otherwise ({shown})"
+    if guarded.get("keep_float") != now.get("keep_float"):
+        return "other layers kept in float32"
+    return "its IR's sha256 differs"
 
 
 def precision_line(
@@ -242,7 +260,16 @@ def describe_precision(
 
 # ----------------------------------------------------------------------------- the rule
 
-RULE_VERSION = 2  # 1: recall at the deployed threshold only, objects independent, one look
+# 1: recall at the deployed threshold only, objects independent, one look; 2: every count
+# criterion, frames as the unit through a design effect estimated from the frames (not valid
+# for rare bursts of changes); 3: tests by betting within per-frame bounds
+RULE_VERSION = 3
+DEPTH_RULE_VERSION = 2  # the depth guard's rule (per-frame SILog) did not change with 3
+_EARLIER = {
+    1: "decided under the earlier recall-only rule",
+    2: "decided under the earlier rule, whose intervals did not hold when changes come in "
+    "rare bursts",
+}
 
 
 def rule_mismatch(
@@ -253,8 +280,10 @@ def rule_mismatch(
     None when its rule matches. The rule is the entry's ``rule`` block (detector:
     ``min_score``, ``score_thresholds``, ``margin_points``; depth: ``margin_silog``)."""
     rule = (entry or {}).get("rule")
-    if not isinstance(rule, dict) or rule.get("version", 1) < RULE_VERSION:
-        return "decided under the earlier recall-only rule; python -m gac_jax.cli.guard re-decides"
+    version = rule.get("version", 1) if isinstance(rule, dict) else 1
+    depth = isinstance(rule, dict) and "margin_silog" in rule
+    if version < (DEPTH_RULE_VERSION if depth else RULE_VERSION):
+        return f"{_EARLIER.get(version, _EARLIER[1])}; python -m gac_jax.cli.guard re-decides"
     stored = rule.get("min_score")
     moved = stored is not None and score_threshold is not None
     if moved and abs(float(stored) - float(score_threshold)) > 1e-9:

@@ -184,11 +184,11 @@ def object_outcomes(
 
 def _fp_table(ref_fp: np.ndarray, cand_fp: np.ndarray, frame_n: np.ndarray) -> dict:
     """A paired table of per-frame false-positive counts: fewer = ``ref_only``, more =
-    ``cand_only``, out of the evaluated objects (at least the changes)."""
+    ``cand_only``, out of the evaluated objects ``n``."""
     d = cand_fp.astype(np.int64) - ref_fp.astype(np.int64)
     lost, gained = np.maximum(-d, 0), np.maximum(d, 0)
     return {
-        "n": int(max(frame_n.sum(), lost.sum() + gained.sum())),
+        "n": int(frame_n.sum()),
         "both": 0,
         "ref_only": int(lost.sum()),
         "cand_only": int(gained.sum()),

@@ -9,10 +9,14 @@ per class and difficulty) **and** on the paired AP difference itself
 (:mod:`gac_jax.evaluation.ap_bootstrap`: AP|R11 and AP|R40, 2D, BEV, 3D and AOS, every
 difficulty, with a paired frame-bootstrap standard error).
 
-Intervals (:mod:`gac_jax.evaluation.paired_proportions`): a count criterion's interval is the
-conservative discordance interval of its counts divided by the frames' design effect (frames
-as the unit); an AP entry's is ``diff -+ z se`` with the bootstrap's ``se`` (approximate: AP
-is not a mean over frames). Margins: ``margin`` (default 0.5 points of the objects: found-rate
+Intervals: a count criterion's are tests by betting on its per-frame changes
+(:mod:`gac_jax.evaluation.frame_betting`), the frame as the unit, valid for any distribution
+of the changes over frames (bursts, losses only in crowded frames) within a per-frame bound:
+a recall row's frame changes at most its objects, and no frame has more than the largest
+guard frame; a false-positive row's frame gains or loses at most ``fp_cap`` (default 20)
+false positives, which the guard checks (a frame beyond it leaves the criterion undecided,
+named). An AP entry's interval is ``diff -+ z se`` with the bootstrap's ``se`` (approximate:
+AP is not a mean over frames). Margins: ``margin`` (default 0.5 points of the objects: found-rate
 or false positives per 100 objects) for the count criteria, ``ap_margin`` (default 1.0 AP
 point) for the AP entries.
 
@@ -25,12 +29,15 @@ The rule, at look ``k`` (the k-th guard run of this model and candidate; ``alpha
   multiplicity correction. What it guarantees: with probability at least ``1 - alpha`` over
   the guard frames, on frames like them the candidate finds no fewer objects (per class,
   difficulty, overlap and score threshold), makes no more false positives, keeps its heading
-  and centre errors, and moves no AP entry by more than the margins (the AP entries as far
-  as the bootstrap's standard error is right).
-* **beyond**: some criterion's interval at ``1 - alpha_k / K`` (Bonferroni over the ``K``
-  criteria) lies entirely outside its margin; the verdict names it and the difference.
+  and centre errors (each within the count margin, given the per-frame bounds above), and
+  moves no AP entry by more than the AP margin (as far as the bootstrap's standard error is
+  right).
+* **beyond**: some criterion's interval at ``1 - alpha_k / K`` (each side at
+  ``alpha_k / (2 K)``, Bonferroni over the ``K`` criteria) lies entirely outside its margin;
+  the verdict names it and the difference.
 * **undecided** otherwise: the frames are too few; the verdict says about how many frames
-  would decide at the next look if the observed rates held.
+  would decide at the next look if the guard frames came again (count criteria) or the
+  bootstrap's standard error shrank as ``1 / sqrt(frames)`` (AP entries).
 
 Also reported, not deciding: the exact McNemar test of ``delta = 0`` per count criterion
 (Holm-adjusted: "changed" even if within the margin) and :func:`matched_differences`.
@@ -48,15 +55,10 @@ from scipy.special import ndtri
 
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.detection.nms import box_iou_matrix
+from gac_jax.evaluation import frame_betting as fb
+from gac_jax.evaluation.frame_betting import FP_CAP, FrameBounds
 from gac_jax.evaluation.guard_criteria import wrap
-from gac_jax.evaluation.paired_proportions import (
-    clustered_interval,
-    difference_interval,
-    holm,
-    look_alpha,
-    mcnemar_p,
-    table_sums,
-)
+from gac_jax.evaluation.paired_proportions import holm, look_alpha, mcnemar_p
 
 MARGIN = 0.5  # points (percent of the objects) of found-rate / false positives
 AP_MARGIN = 1.0  # AP points
@@ -64,63 +66,66 @@ ALPHA = 0.05
 MATCH_IOU = 0.5  # candidate detection <-> float32 detection, for the paired distributions
 
 
-def _scaled(table: dict, n: int) -> tuple[int, int]:
-    """``(ref_only, cand_only)`` of ``n`` objects at ``table``'s discordance rates."""
-    m = round(n * (table["ref_only"] + table["cand_only"]) / max(table["n"], 1))
-    m_obs = table["ref_only"] + table["cand_only"]
-    cand = round(m * table["cand_only"] / m_obs) if m_obs else 0
-    return m - cand, cand
+def frame_changes(table: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``(d, n)`` of a count table, ``(F,)`` float64: per frame the candidate's change (gained
+    minus lost) and the evaluated objects; a table without per-frame counts counts each object
+    as a frame."""
+    if "frame_n" in table:
+        d = np.asarray(table["frame_cand_only"], np.float64) - table["frame_ref_only"]
+        return d, np.asarray(table["frame_n"], np.float64)
+    r, c = table["ref_only"], table["cand_only"]
+    d = np.r_[-np.ones(r), np.ones(c), np.zeros(table["n"] - r - c)]
+    return d, np.ones(table["n"])
 
 
-def objects_needed(
-    table: dict, margin: float, alpha_each_side: float, limit: int = 10_000_000
-) -> int | None:
-    """The fewest (independent) objects at which the conservative interval
-    (``alpha_each_side``) would lie inside ``+-margin`` (observed difference within it) or
-    outside it (beyond), if the observed discordance rates held; None if even ``limit``
-    objects would not decide."""
-    n = max(table["n"], 1)
-    delta = 100.0 * (table["cand_only"] - table["ref_only"]) / n
-    if table["n"] and abs(delta) == margin:
-        return None
-
-    def decided(k: int) -> bool:
-        lo, hi = difference_interval(*_scaled(table, k), k, alpha_each_side)
-        if abs(delta) < margin or not table["n"]:
-            return -margin <= lo and hi <= margin
-        return lo > margin or hi < -margin
-
-    lo, hi = n, n
-    while not decided(hi):
-        lo, hi = hi, hi * 2
-        if hi > limit:
-            return None
-    while hi - lo > max(1, lo // 100):  # to 1 %
-        mid = (lo + hi) // 2
-        lo, hi = (lo, mid) if decided(mid) else (mid, hi)
-    return hi
+def frame_bounds(table: dict, n: np.ndarray, fp_cap: float = FP_CAP) -> FrameBounds:
+    """What one frame of this criterion can change (:class:`FrameBounds`): recall rows all
+    the objects of a frame, at most the largest guard frame's; false-positive rows ``fp_cap``."""
+    return FrameBounds(table.get("kind", "recall"), float(n.max(initial=0.0)), fp_cap)
 
 
-def _count_row(t: dict, margin: float, a_within: float, a_beyond: float) -> dict:
-    sums = table_sums(t)
-    lo, hi, deff = clustered_interval(sums, a_within)
-    b_lo, b_hi, _ = clustered_interval(sums, a_beyond)
-    n = t["n"]
+def _count_row(t: dict, margin: float, a_within: float, a_beyond: float, fp_cap: float) -> dict:
+    d, n = frame_changes(t)
+    bounds = frame_bounds(t, n, fp_cap)
     row = {k: v for k, v in t.items() if not k.startswith("frame_")}
-    return row | {
+    row |= {
         "kind": t.get("kind", "recall"),
-        "diff": 100.0 * (t["cand_only"] - t["ref_only"]) / n if n else 0.0,
+        "diff": 100.0 * float(d.sum() / n.sum()) if n.sum() else 0.0,
         "margin": margin,
-        "deff": deff,
-        "within_interval": [lo, hi],
-        "beyond_interval": [b_lo, b_hi],
+        "bound": bounds.cap if bounds.kind == "fp" else bounds.n_max,
         "mcnemar_p": mcnemar_p(t["ref_only"], t["cand_only"]),
+    }
+    if bounds.kind == "fp" and np.abs(d).max(initial=0.0) > fp_cap:
+        row["over_cap"] = int(np.abs(d).max())
+    if not n.sum():
+        return row | {
+            "within_interval": [-math.inf, math.inf],
+            "beyond_interval": [-math.inf, math.inf],
+            "status": "undecided",
+        }
+    x = margin / 100.0
+    if bool(fb.rejects(d, n, x, bounds, a_beyond) or fb.rejects(-d, n, x, bounds, a_beyond)):
+        status = "beyond"
+    elif bool(fb.rejects(d, n, -x, bounds, a_within) and fb.rejects(-d, n, -x, bounds, a_within)):
+        status = "within"
+    else:
+        status = "undecided"
+    return row | {
+        "within_interval": list(fb.interval(d, n, bounds, a_within, (-margin, margin))),
+        "beyond_interval": list(fb.interval(d, n, bounds, a_beyond, (margin, -margin))),
+        "status": status,
     }
 
 
 def _ap_row(entry: dict, margin: float, a_within: float, a_beyond: float) -> dict:
     diff, se = float(entry["diff"]), float(entry["se"])
     w, b = float(ndtri(1 - a_within)) * se, float(ndtri(1 - a_beyond)) * se
+    if diff - b > margin or diff + b < -margin:
+        status = "beyond"
+    elif -margin <= diff - w and diff + w <= margin:
+        status = "within"
+    else:
+        status = "undecided"
     return {
         "kind": "ap",
         "diff": diff,
@@ -128,13 +133,17 @@ def _ap_row(entry: dict, margin: float, a_within: float, a_beyond: float) -> dic
         "margin": margin,
         "within_interval": [diff - w, diff + w],
         "beyond_interval": [diff - b, diff + b],
+        "status": status,
     }
 
 
-def _frames_needed(row: dict, frames: int, a_within: float, a_beyond: float) -> int | None:
-    """Frames at which this open criterion would decide (next look's levels), if the
-    observed rates (count criteria, at their design effect) or the bootstrap's standard
-    error times sqrt(frames) (AP entries) held; None if no affordable number would."""
+def _frames_needed(
+    row: dict, table: dict | None, frames: int, a_within: float, a_beyond: float, fp_cap: float
+) -> int | None:
+    """Frames at which this open criterion would decide (next look's levels): count criteria
+    if the guard frames came again in the same order (:func:`frame_betting.frames_to_reject`
+    of each test that must reject), AP entries if the bootstrap's standard error times
+    sqrt(frames) held; None if no affordable number would."""
     margin, diff = row["margin"], row["diff"]
     within = abs(diff) < margin
     if row["kind"] == "ap":
@@ -143,16 +152,14 @@ def _frames_needed(row: dict, frames: int, a_within: float, a_beyond: float) -> 
             return None
         z = ndtri(1 - (a_within if within else a_beyond))
         return math.ceil(frames * (z * row["se"] / gap) ** 2)
-    if not row["n"] or not frames:
+    d, n = frame_changes(table)
+    if not n.sum() or abs(diff) == margin:
         return None
-    deff = row["deff"]
-    eff = {
-        "n": round(row["n"] / deff),
-        "ref_only": round(row["ref_only"] / deff),
-        "cand_only": round(row["cand_only"] / deff),
-    }
-    need = objects_needed(eff, margin, a_within if within else a_beyond)
-    return None if need is None else math.ceil(need * deff / (row["n"] / frames))
+    bounds, x = frame_bounds(table, n, fp_cap), margin / 100.0
+    if within:
+        needs = [fb.frames_to_reject(s * d, n, -x, bounds, a_within) for s in (1, -1)]
+        return None if None in needs else max(needs)
+    return fb.frames_to_reject(np.sign(diff) * d, n, x, bounds, a_beyond)
 
 
 def decide(
@@ -163,6 +170,7 @@ def decide(
     look: int = 1,
     ap: dict[str, dict] | None = None,
     ap_margin: float = AP_MARGIN,
+    fp_cap: float = FP_CAP,
 ) -> dict:
     """The rule of the module docstring over every criterion.
 
@@ -173,28 +181,23 @@ def decide(
       look: which guard run of this model and candidate this is (1, 2, ...).
       ap: ``{"Car AP40 3d@0.70 moderate": {'diff', 'se'}, ...}``
         (:func:`~gac_jax.evaluation.ap_bootstrap.paired_ap_bootstrap`), or None.
+      fp_cap: false positives one frame may gain or lose (:class:`FrameBounds`).
 
     Returns:
       ``{'verdict': 'within'|'beyond'|'undecided', 'reason': one line, 'deciding', 'margin',
-      'ap_margin', 'alpha', 'look', 'alpha_look', 'frames', 'frames_needed' (undecided
-      only), 'criteria': {name: {'kind': recall|fp|ap, 'diff', 'margin', 'within_interval',
-      'beyond_interval', 'status', ...}}}``; count rows also carry the table, ``deff``,
-      ``mcnemar_p`` and ``holm_p``, AP rows ``se``. Differences in points.
+      'ap_margin', 'alpha', 'look', 'alpha_look', 'frames', 'fp_cap', 'frames_needed'
+      (undecided only), 'criteria': {name: {'kind': recall|fp|ap, 'diff', 'margin',
+      'within_interval', 'beyond_interval', 'status', ...}}}``; count rows also carry the
+      table, ``bound`` (the per-frame bound: largest frame or ``fp_cap``), ``over_cap`` (a
+      false-positive row with a frame beyond the cap: its largest change), ``mcnemar_p`` and
+      ``holm_p``, AP rows ``se``. Differences in points; an interval side is infinite where
+      the frames break the bound it needs.
     """
     ap = ap or {}
     k = len(tables) + len(ap)
     a = look_alpha(alpha, look)
-    rows = {n: _count_row(t, margin, a, a / (2 * k)) for n, t in tables.items()}
+    rows = {n: _count_row(t, margin, a, a / (2 * k), fp_cap) for n, t in tables.items()}
     rows |= {n: _ap_row(e, ap_margin, a, a / (2 * k)) for n, e in ap.items()}
-    for r in rows.values():
-        (lo, hi), (b_lo, b_hi), m = r["within_interval"], r["beyond_interval"], r["margin"]
-        empty = r["kind"] != "ap" and not r["n"]
-        if not empty and (b_lo > m or b_hi < -m):
-            r["status"] = "beyond"
-        elif not empty and -m <= lo and hi <= m:
-            r["status"] = "within"
-        else:
-            r["status"] = "undecided"
     counted = [n for n in rows if rows[n]["kind"] != "ap"]
     for name, p in zip(counted, holm([rows[n]["mcnemar_p"] for n in counted]), strict=True):
         rows[name]["holm_p"] = p
@@ -205,6 +208,7 @@ def decide(
         "look": look,
         "alpha_look": a,
         "frames": frames,
+        "fp_cap": fp_cap,
         "criteria": rows,
     }
     beyond = {n: r for n, r in rows.items() if r["status"] == "beyond"}
@@ -239,16 +243,27 @@ def decide(
         }
         return out
     a_next = look_alpha(alpha, look + 1)
-    needs = {n: _frames_needed(rows[n], frames, a_next, a_next / (2 * k)) for n in open_}
-    known = {n: v for n, v in needs.items() if v is not None}
-    deciding = max(known, key=known.get) if known else open_[0]
-    frames_needed = known[deciding] if len(known) == len(needs) else None
+    needs = {
+        n: _frames_needed(rows[n], tables.get(n), frames, a_next, a_next / (2 * k), fp_cap)
+        for n in open_
+    }
+    unknown = [n for n in open_ if needs[n] is None]
+    if unknown:  # a criterion over the cap first: the user can act on it
+        deciding = next((n for n in unknown if "over_cap" in rows[n]), unknown[0])
+    else:
+        deciding = max(needs, key=needs.get)
+    frames_needed = needs[deciding]
     r = rows[deciding]
-    needed_text = (
-        f"about {frames_needed} frames would decide it at look {look + 1}"
-        if frames_needed is not None
-        else "no affordable number of frames would decide it at the observed rates"
-    )
+    if frames_needed is not None:
+        needed_text = f"about {frames_needed} frames would decide it at look {look + 1}"
+    elif "over_cap" in r:
+        needed_text = (
+            f"a frame's false positives changed by {r['over_cap']}, more than the {fp_cap} "
+            "per frame the guarantee assumes (--fp-cap)"
+        )
+    else:
+        needed_text = "no affordable number of frames would decide it at the observed rates"
+
     out |= {
         "verdict": "undecided",
         "deciding": deciding,

@@ -1,4 +1,5 @@
-"""Intervals for paired differences of proportions, with the frame as the sampling unit.
+"""Paired differences of proportions: exact binomial intervals, McNemar and Holm, alpha spent
+over looks, and the guard's earlier frame-clustered interval.
 
 Two runs are scored on the same objects; each object is *found* or *missed* by each run,
 giving the 2x2 table ``both``, ``ref_only`` (lost by the candidate), ``cand_only`` (gained),
@@ -14,7 +15,11 @@ score interval for paired proportions would need), not exact. With no discordant
 ``+-q_hi``, e.g. ``+-0.50`` points for 736 objects: agreement on few objects is no evidence of
 equivalence.
 
-**Frames as the unit** (:func:`clustered_interval`): objects of one frame move together (a
+**The earlier rule's frames as the unit** (:func:`clustered_interval`; the guard's count
+criteria used it up to verdict rule version 2 and now use
+:mod:`gac_jax.evaluation.frame_betting`; it stays to measure what the current intervals cost,
+``benchmarks/bench_guard_power.py``, and to show that the burst simulations of the tests catch
+it): objects of one frame move together (a
 frame's exposure or a shared feature shifts every object in it), so the interval uses
 *per-frame paired counts with a design-effect correction*: the counts are divided by the
 design effect ``deff`` (Kish's effective sample size) before the conservative interval above
@@ -23,9 +28,11 @@ is applied to them (Clopper-Pearson takes non-integer counts through the beta di
 ``delta`` to its variance for independent objects, at least 1. With fewer than
 :data:`MIN_DISCORDANT_FRAMES` frames holding a discordance it cannot be estimated, and the
 worst case is taken instead: every object of a frame moving together,
-``deff_max = sum(n_f^2) / sum(n_f)`` (``n_f`` the objects of frame ``f``). Coverage of the
-resulting rule at the margin is checked by simulation in the tests, for independent and for
-frame-clustered discordances.
+``deff_max = sum(n_f^2) / sum(n_f)`` (``n_f`` the objects of frame ``f``). Its coverage at
+the margin holds for independent and for frame-clustered discordances, but not when changes
+come in rare large bursts: ``deff_max`` is an average frame size, not what one frame can
+change, and a guard set holding no burst (or 30 frames of small background changes) shows
+none. Under such bursts it said "within" at the margin in 10-20 % of guard runs.
 
 **Looking again**: a guard run may be repeated on more frames until it decides. Look ``k``
 (1, 2, ...) spends ``alpha / 2^k`` (:func:`look_alpha`); the looks together spend at most
