@@ -23,7 +23,7 @@ import pytest
 
 from gac_jax.data.files import read_image
 from gac_jax.data.kitti import KittiObjects, read_calib, write_calib
-from gac_jax.streams import mp4_fragments, outputs
+from gac_jax.streams import outputs
 
 SIZE = (370, 1224)  # the smallest vendored frame: the others are cut to it (same P2)
 REPO = Path(__file__).resolve().parents[1]
@@ -249,19 +249,6 @@ def test_a_failed_write_keeps_whole_frames_and_lines(tmp_path, monkeypatch):
     kept = results.close(complete=False)
     assert kept == tmp_path / "r.incomplete.jsonl"
     assert [json.loads(line)["frame"] for line in kept.read_text().splitlines()] == ["000000"]
-
-
-def test_fragmented_mp4_frames_timing_and_a_cut_file():
-    """The box layout: one fragment per frame, exact frame timing for 10 and 29.97 frames/s."""
-    assert mp4_fragments.frame_timing(10.0) == (1000, 100)
-    timescale, ticks = mp4_fragments.frame_timing(30000 / 1001)
-    assert timescale / ticks == pytest.approx(30000 / 1001, rel=1e-12)
-    head, mehd_at = mp4_fragments.header(64, 40, 1000, 100)
-    assert head[4:8] == b"ftyp" and head[mehd_at - 8 : mehd_at - 4] == b"mehd"
-    unit = mp4_fragments.fragment(3, 200, b"\xff\xd8jpeg\xff\xd9")
-    moof_size = int.from_bytes(unit[:4], "big")
-    assert unit[4:8] == b"moof" and unit[moof_size + 4 : moof_size + 8] == b"mdat"
-    assert unit.endswith(b"\xff\xd8jpeg\xff\xd9")
 
 
 NO_MAIN_GUARD = """
