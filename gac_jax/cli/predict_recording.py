@@ -45,8 +45,8 @@ def option_problem(args: argparse.Namespace) -> str | None:
     if args.mcap_profile is not None and args.mcap is None:
         return "--mcap-profile goes with --mcap FILE (the recording it sets the messages of)"
     try:
-        if args.out_video is not None:
-            outputs.check_video_path(args.out_video, args.codec)
+        if args.out_video is not None and not Path(args.out_video).is_dir():
+            outputs.check_video_path(args.out_video, args.codec)  # a folder: the plan says
         if args.mcap is not None:
             mcap_recording.check_mcap_path(args.mcap, args.mcap_profile or "foxglove")
     except KittiFormatError as e:
