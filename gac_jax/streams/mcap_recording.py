@@ -177,49 +177,48 @@ class McapRecording:
         self.cpu_s = 0.0  # CPU seconds spent in write()
         self._closed = False
         self._file = _CheckedStream(self.partial, self.path)
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.NONE)
-        self._channels: dict[str, int] = {}
-        self._encoders: dict[str, object] = {}
+        self._channels: dict[str, object] = {}  # channel id (foxglove) or schema (ros2)
         try:
-            self._writer.start(profile="ros2" if profile == "ros2" else "", library="gac_jax")
+            if profile == "ros2":  # mcap-ros2-support's writer: CDR from the definitions
+                from mcap_ros2.writer import Writer as Ros2Writer
+
+                self._ros2 = Ros2Writer(self._file, chunk_size, CompressionType.NONE)
+                self._writer = None
+            else:
+                self._ros2 = None
+                self._writer = Writer(self._file, chunk_size, CompressionType.NONE)
+                self._writer.start(profile="", library="gac_jax")
         except OSError:
             self.close(False)
             raise
 
     # ------------------------------------------------------------------ channels
 
-    def _channel(self, key: str) -> int:
+    def _channel(self, key: str):
         if key in self._channels:
             return self._channels[key]
         topic, schema = TOPICS[self.profile][key]
-        if self.profile == "ros2":
-            from mcap_ros2._dynamic import serialize_dynamic
-
-            text = msgdef(schema)
-            schema_id = self._writer.register_schema(schema, "ros2msg", text.encode())
-            self._encoders[key] = serialize_dynamic(schema, text)[schema]
-            encoding = "cdr"
+        if self._ros2 is not None:
+            channel = self._ros2.register_msgdef(schema, msgdef(schema))
         elif key == "json":
             data = json.dumps(JSON_SCHEMA).encode()
             schema_id = self._writer.register_schema(schema, "jsonschema", data)
-            encoding = "json"
+            channel = self._writer.register_channel(topic, "json", schema_id)
         else:
             from mcap_protobuf.schema import register_schema
 
             schema_id = register_schema(self._writer, protobuf_class(schema))
-            encoding = "protobuf"
-        channel = self._writer.register_channel(topic, encoding, schema_id)
+            channel = self._writer.register_channel(topic, "protobuf", schema_id)
         self._channels[key] = channel
         return channel
 
     def _add(self, key: str, message, ns: int) -> None:
         channel = self._channel(key)
-        if self.profile == "ros2":
-            data = self._encoders[key](message)
-        elif key == "json":
-            data = message.encode()
-        else:
-            data = message.SerializeToString()
+        if self._ros2 is not None:
+            topic = TOPICS[self.profile][key][0]
+            self._ros2.write_message(topic, channel, message, ns, ns, self.frames)
+            return
+        data = message.encode() if key == "json" else message.SerializeToString()
         self._writer.add_message(
             channel, log_time=ns, data=data, publish_time=ns, sequence=self.frames
         )
@@ -292,7 +291,7 @@ class McapRecording:
         error = None
         if self._file.error is None:
             try:
-                self._writer.finish()
+                (self._ros2 or self._writer).finish()
             except OSError:
                 error = self._file.error
         try:

@@ -106,6 +106,7 @@ class AnnotatedVideo:
         self._writer: cv2.VideoWriter | None = None
         self._frames = 0
         self._keep: int | None = None  # drop_last: frames to keep at most
+        self._encoder_cpu_s = 0.0
         self._closed = False
         self._pad = (0, 0)  # rows, columns added at the bottom / right (OpenCV's codecs)
 
@@ -116,8 +117,8 @@ class AnnotatedVideo:
 
     @property
     def encoder_cpu_s(self) -> float:
-        """CPU seconds of the MP4 encoder's thread so far (0 for OpenCV's writer)."""
-        return self._mp4.cpu_s if self._mp4 is not None else 0.0
+        """CPU seconds of the MP4 encoder's thread (0 for OpenCV's writer)."""
+        return self._mp4.cpu_s if self._mp4 is not None else self._encoder_cpu_s
 
     def _open(self, h: int, w: int) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -176,14 +177,15 @@ class AnnotatedVideo:
         self._closed = True
         if self._mp4 is not None:
             limits = [n for n in (frames, self._keep) if n is not None]
+            mp4, self._mp4 = self._mp4, None
             try:
-                self._frames = self._mp4.close(min(limits) if limits else None)
+                self._frames = mp4.close(min(limits) if limits else None)
             except Exception:
-                self._frames = self._mp4.kept_frames
-                self._mp4 = None
+                self._frames = mp4.kept_frames
                 self.kept = _keep(self.partial, self.path, False, self._frames)
                 raise
-            self._mp4 = None
+            finally:
+                self._encoder_cpu_s = mp4.cpu_s
         elif self._writer is not None:
             self._writer.release()
             self._writer = None

@@ -21,7 +21,7 @@ import numpy as np
 from gac_jax.api.tracker import Tracker3D
 from gac_jax.data.files import KittiFormatError
 from gac_jax.data.kitti import KittiObjects
-from gac_jax.evaluation.track_pictures import track_picture
+from gac_jax.evaluation.track_pictures import ImageTrails, track_picture
 from gac_jax.streams.outputs import JsonlResults
 from gac_jax.streams.sources import Frame
 from gac_jax.tracking.tracks import kitti_tracking_lines
@@ -53,6 +53,7 @@ class TrackingStage:
     ):
         self.tracker, self.fps, self.realtime, self.scale = tracker, fps, realtime, scale
         self.poses = None if poses is None else np.asarray(poses, np.float64)
+        self.trails = ImageTrails()  # the camera view's trails, over the pictures drawn
 
     def update(self, frame: Frame, detections):
         pose = None
@@ -62,11 +63,17 @@ class TrackingStage:
                     "poses", f"frame {frame.index} has none (they cover 0 to {len(self.poses) - 1})"
                 )
             pose = self.poses[frame.index]
-        timestamp = frame.t_read if self.realtime else frame.index / self.fps
+        timestamp = self.frame_time(frame)
         return self.tracker.update(detections, pose=pose, timestamp=timestamp, plane=frame.plane)
 
+    def frame_time(self, frame: Frame) -> float:
+        return frame.t_read if self.realtime else frame.index / self.fps
+
     def draw(self, frame: Frame, tracks) -> np.ndarray:
-        return track_picture(frame.image, frame.P2, tracks, scale=self.scale)
+        return track_picture(
+            frame.image, frame.P2, tracks, scale=self.scale, trails=self.trails,
+            timestamp=self.frame_time(frame), over_ground=self.poses is not None,
+        )  # fmt: skip
 
 
 class KittiTrackingResults(JsonlResults):
