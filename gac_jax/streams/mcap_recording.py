@@ -37,6 +37,7 @@ chunk written before: the ``mcap`` reader reads them in order (the file has no s
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -48,6 +49,7 @@ import numpy as np
 
 from gac_jax.data.files import KittiFormatError
 from gac_jax.streams import recording_scene as scene
+from gac_jax.streams.checked_file import CheckedFile
 from gac_jax.streams.outputs import _keep, _plain, partial_path
 from gac_jax.streams.recording_messages import foxglove_messages, protobuf_class, ros2_messages
 from gac_jax.streams.ros2_msgdefs import msgdef
@@ -100,51 +102,6 @@ def check_mcap_path(path: str | os.PathLike, profile: str = "foxglove") -> Path:
     return path
 
 
-class _CheckedStream:
-    """The file object the ``mcap`` writer writes into: appends with checked ``os.write``
-    (``tell`` for the writer's index); a failed write cuts the file back to the end of the
-    last whole write (whole records) and keeps the error."""
-
-    def __init__(self, path: Path, name: Path):
-        self.name = os.fspath(name)
-        self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
-        self.offset = 0
-        self.error: OSError | None = None
-
-    def write(self, data) -> int:
-        if self.error is not None:
-            raise self.error
-        view, done = memoryview(data).cast("B"), 0
-        try:
-            while done < len(view):
-                n = os.write(self.fd, view[done:])
-                if n == 0:
-                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-                done += n
-        except OSError as e:
-            os.ftruncate(self.fd, self.offset)
-            code = e.errno or errno.EIO
-            self.error = OSError(code, e.strerror or os.strerror(code), self.name)
-            raise self.error from None
-        self.offset += len(view)
-        return len(view)
-
-    def tell(self) -> int:
-        return self.offset
-
-    def flush(self) -> None:
-        pass
-
-    def close(self) -> None:
-        if self.fd < 0:
-            return
-        try:
-            os.fsync(self.fd)
-        finally:
-            os.close(self.fd)
-            self.fd = -1
-
-
 class McapRecording:
     """Writes frames, their calibration and their boxes into an MCAP file (module doc).
 
@@ -176,7 +133,7 @@ class McapRecording:
         self.kept: Path | None = None
         self.cpu_s = 0.0  # CPU seconds spent in write()
         self._closed = False
-        self._file = _CheckedStream(self.partial, self.path)
+        self._file = CheckedFile(self.partial, self.path, mark_writes=True)
         self._channels: dict[str, object] = {}  # channel id (foxglove) or schema (ros2)
         try:
             if profile == "ros2":  # mcap-ros2-support's writer: CDR from the definitions
@@ -288,17 +245,13 @@ class McapRecording:
         if self._closed:
             return self.kept
         self._closed = True
-        error = None
-        if self._file.error is None:
-            try:
+        failed_before = self._file.error is not None  # raised by write() already
+        if not failed_before:
+            with contextlib.suppress(OSError):  # kept as the file's error
                 (self._ros2 or self._writer).finish()
-            except OSError:
-                error = self._file.error
-        try:
-            self._file.close()
-        except OSError as e:
-            error = error or OSError(e.errno, e.strerror, str(self.path))
-        complete = complete and error is None and self._file.error is None
+        self._file.close()  # a failed flush to disk is kept as its error too
+        error = None if failed_before else self._file.error
+        complete = complete and self._file.error is None
         self.kept = _keep(self.partial, self.path, complete, self.frames)
         if error is not None:
             raise error

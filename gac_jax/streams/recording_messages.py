@@ -20,6 +20,20 @@ def protobuf_class(name: str):
     return getattr(module, short)
 
 
+def box_entity(entity: dict, stamp) -> dict:
+    """A scene entity of one box (:func:`~gac_jax.streams.recording_scene.box_entities`): its
+    cube, a billboard label in its colour and its metadata, in the camera frame."""
+    label = {**entity["label"], "billboard": True, "font_size": 14.0, "scale_invariant": True}
+    return {
+        "timestamp": stamp,
+        "frame_id": CAMERA_FRAME,
+        "id": entity["id"],
+        "cubes": [entity["cube"]],
+        "texts": [{**label, "color": entity["color"]}],
+        "metadata": [{"key": k, "value": v} for k, v in entity["metadata"]],
+    }
+
+
 def _stamp(ns: int) -> dict:
     return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
 
@@ -55,25 +69,7 @@ def foxglove_messages(ns, jpeg, size, P2, entities, pose, plane, text):
         ),
     ]
     deletion = [{"timestamp": stamp, "type": 1}]  # ALL: the previous frame's boxes go
-    boxes = [
-        {
-            "timestamp": stamp,
-            "frame_id": CAMERA_FRAME,
-            "id": e["id"],
-            "cubes": [e["cube"]],
-            "texts": [
-                {
-                    **e["label"],
-                    "billboard": True,
-                    "font_size": 14.0,
-                    "scale_invariant": True,
-                    "color": e["color"],
-                }
-            ],
-            "metadata": [{"key": k, "value": v} for k, v in e["metadata"]],
-        }
-        for e in entities
-    ]
+    boxes = [box_entity(e, stamp) for e in entities]
     out.append(("scene", SceneUpdate(deletions=deletion, entities=boxes)))
     if plane is not None:
         ground = {
@@ -151,25 +147,7 @@ def ros2_messages(ns, jpeg, size, P2, entities, pose, plane, text):
     }
     forever = {"sec": 0, "nanosec": 0}
     boxes = [
-        {
-            "timestamp": stamp,
-            "frame_id": CAMERA_FRAME,
-            "id": e["id"],
-            "lifetime": forever,
-            "frame_locked": False,
-            "cubes": [e["cube"]],
-            "texts": [
-                {
-                    **e["label"],
-                    "billboard": True,
-                    "font_size": 14.0,
-                    "scale_invariant": True,
-                    "color": e["color"],
-                }
-            ],
-            "metadata": [{"key": k, "value": v} for k, v in e["metadata"]],
-            **empty,
-        }
+        {**box_entity(e, stamp), "lifetime": forever, "frame_locked": False, **empty}
         for e in entities
     ]
     deletion = [{"timestamp": stamp, "type": 1, "id": ""}]

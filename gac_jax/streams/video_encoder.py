@@ -25,7 +25,6 @@ holds whole frames at every moment.
 from __future__ import annotations
 
 import contextlib
-import errno
 import os
 import queue
 import threading
@@ -34,6 +33,8 @@ from fractions import Fraction
 
 import cv2
 import numpy as np
+
+from gac_jax.streams.checked_file import CheckedFile
 
 CODECS = ("h264", "mjpeg")
 DEFAULT_CODEC = "h264"
@@ -54,69 +55,6 @@ def frame_rate(fps: float) -> Fraction:
 def even_size(h: int, w: int) -> tuple[int, int]:
     """The encoded size of an (h, w) picture: rounded up to even numbers."""
     return h + h % 2, w + w % 2
-
-
-class CheckedFile:
-    """The file object PyAV's muxer writes into (module doc): appends with checked
-    ``os.write``; :meth:`mark` records the end of a whole fragment; after a failed write the
-    file ends at the last mark and every later write fails with the same error.
-
-    Args:
-      path: the file (created or truncated); name: the path errors name.
-    """
-
-    def __init__(self, path: str | os.PathLike, name: str | os.PathLike):
-        self.name = os.fspath(name)
-        self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
-        self.offset = 0
-        self.marks: list[int] = []  # file ends after the header and after each fragment
-        self.error: OSError | None = None
-
-    def writable(self) -> bool:
-        return True
-
-    def write(self, data) -> int:
-        if self.error is not None:
-            raise self.error
-        view, done = memoryview(data).cast("B"), 0
-        try:
-            while done < len(view):
-                n = os.write(self.fd, view[done:])
-                if n == 0:
-                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-                done += n
-        except OSError as e:
-            self.fail(e)
-            raise self.error from None
-        self.offset += len(view)
-        return len(view)
-
-    def fail(self, e: OSError) -> None:
-        """Cuts the file back to the last mark and keeps ``e`` (naming the file)."""
-        code = e.errno or errno.EIO
-        self.error = OSError(code, e.strerror or os.strerror(code), self.name)
-        self.truncate(self.marks[-1] if self.marks else 0)
-
-    def mark(self) -> None:
-        self.marks.append(self.offset)
-
-    def truncate(self, end: int) -> None:
-        os.ftruncate(self.fd, end)
-        self.offset = end
-
-    def close(self) -> None:
-        """Flushes to disk and closes (idempotent); a failed flush is kept as the error."""
-        if self.fd < 0:
-            return
-        try:
-            os.fsync(self.fd)
-        except OSError as e:
-            if self.error is None:
-                code = e.errno or errno.EIO
-                self.error = OSError(code, e.strerror or os.strerror(code), self.name)
-        finally:
-            os.close(self.fd)
-            self.fd = -1
 
 
 def _open_stream(file: CheckedFile, codec: str, fps: float, size: tuple[int, int]):
