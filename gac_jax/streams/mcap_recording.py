@@ -288,6 +288,10 @@ class McapResults:
     def kept(self) -> Path | None:
         return self.recording.kept
 
+    @property
+    def partial(self) -> Path:
+        return self.recording.partial
+
     def write_frame(self, frame, detections, record: dict | None) -> None:
         timestamp = self._epoch + frame.t_read if self.realtime else frame.index / self.fps
         pose = None
