@@ -160,14 +160,16 @@ def test_a_full_disk_keeps_a_playable_prefix_and_the_earlier_video(
 
 @pytest.mark.parametrize("when", ["stream", "start-up"])
 def test_sigterm_ends_a_stream_as_ctrl_c_does(tiny_detect3d_workdir, stream_input, tmp_path, when):
-    """SIGTERM mid-stream: reading stops, the frames in flight finish, a playable video of
-    exactly the frames with result files, the summary, exit 143. During start-up (the output
-    folder is made after the input opened, before the model loads): one line, exit 143,
-    nothing written, no traceback, nothing hidden."""
+    """SIGTERM mid-stream: reading stops, the frames in flight finish, a playable H.264 video
+    and a finished MCAP recording (its summary written: the last chunk finished) of exactly
+    the frames with result files, the summary, exit 143. During start-up (the output folder is
+    made after the input opened, before the model loads): one line, exit 143, nothing
+    written, no traceback, nothing hidden."""
     make_video, calib = stream_input
     video = make_video("long.avi", 400, fps=10.0)
     out = tmp_path / "out"
-    argv = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", calib, "--out", out]
+    argv = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", calib, "--out", out,
+            "--mcap", out / "run.mcap"]  # fmt: skip
     process = predict(argv)
     deadline = time.monotonic() + 240
     target = 5 if when == "stream" else 0
@@ -187,6 +189,12 @@ def test_sigterm_ends_a_stream_as_ctrl_c_does(tiny_detect3d_workdir, stream_inpu
         return
     written = len(list((out / "data").glob("*.txt")))
     assert 5 <= written < 400 and count_frames(out / "annotated.mp4") == written
+    assert decoded_frames(out / "annotated.mp4") == ("h264", written)
+    from mcap.reader import make_reader
+
+    with open(out / "run.mcap", "rb") as f:
+        counts = make_reader(f).get_summary().statistics.channel_message_counts
+    assert counts and set(counts.values()) == {written}
     assert "SIGTERM: reading stopped" in stdout and "in flight finished" in stdout
     assert f"{written} frames -> " in stdout and stderr.strip() == "", stderr
 
