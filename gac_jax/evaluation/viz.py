@@ -233,8 +233,7 @@ def draw_objects_into(
     Args:
       canvas: the picture; P2: (3, 4) projection of this image.
       objects: boxes in this image's camera frame; ``bbox`` in its pixels.
-      color: one colour for all, a list of one per object, or None for :func:`class_color`
-        per class.
+      color: one colour for all, a list of one per object, or None: :func:`class_color`.
       draw_3d: projected wireframes with the front-face cross (DontCare and
         boxes without dimensions are skipped; edges behind ``near`` are cut).
       draw_2d: the ``bbox`` rectangles (thin).
@@ -391,8 +390,8 @@ def _bev_background_cached(grid: BevGrid, background: Color, line: Color) -> np.
 
 
 def _bev_boxes(canvas, grid, objects, color, thickness):
-    """Footprints (one ``cv2.polylines`` per run of one colour) and their heading marks
-    (``color``: one for all, a list of one per object, or None: per class)."""
+    """Footprints (one ``cv2.polylines`` per run of one colour) and heading marks (``color``:
+    one, one per object, or None: per class)."""
     shown = drawable(objects)
     if isinstance(color, list):
         color = [c for c, k in zip(color, shown, strict=True) if k]
@@ -437,8 +436,7 @@ def draw_bev_into(
     colors: list[Color] | None = None,
 ) -> None:
     """:func:`draw_bev` into ``canvas`` ((H, W, 3) uint8 of ``grid.size``, may be a view):
-    the grid picture copied in, then the boxes (``colors``: one per prediction; default per
-    class)."""
+    the grid picture, then the boxes (``colors``: one per prediction, default per class)."""
     grid = grid or BevGrid()
     canvas[:] = _bev_background_cached(grid, tuple(background), tuple(grid_color))
     if ground_truth is not None:
