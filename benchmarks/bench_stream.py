@@ -23,11 +23,12 @@ wall-clock figures), plus the machine and its load. Export, int8 calibration and
         [--paper-frames 20] [--rounds 2] [--only 'jax f32,openvino int8'] [--batch-size 1]
         [--threads N] [--workdir W] [--live FPS] [--json OUT] [--requests 1,2]
         [--no-video] [--video-scale S] [--container mp4|avi] [--net-frames N] [--profile]
-        [--clock-ghz G] [--track]
+        [--clock-ghz G] [--track] [--codec h264|mjpeg] [--mcap [--mcap-profile ros2]]
 
 Core accounting per row: each stage's CPU time per frame (its thread's), the XLA threads'
 (decoding; the jax runtime's network), the rest (the ONNX Runtime / OpenVINO inference
 threads and the video encoder's own threads: process CPU minus the stage and XLA threads),
+the video encoder's thread (H.264 by default, ``--codec mjpeg`` as the CLI's; its own line),
 the total core-ms per frame against wall x cores, and the stream's rate as a fraction of the
 network-alone rate measured in the same run (``infer`` on ``--net-frames`` prepared frames one
 after another, before each round; the median over rounds: one measurement of a few frames
@@ -46,7 +47,9 @@ boost clock with ``--clock-ghz``) or the runtime multiplied less than the graph 
 (:mod:`gac_jax.streams.thread_budget`);
 ``--requests 1,2`` times each ONNX Runtime / OpenVINO row with that many network calls in
 flight (``--network-requests``); ``--no-video``, ``--video-scale S`` and ``--container avi``
-(Motion JPEG instead of MPEG-4) as the CLI's options.
+(OpenCV's Motion JPEG instead of the MP4), ``--codec`` and ``--mcap`` (an MCAP recording of
+every frame, its core-ms per frame printed: the time inside the recorder's ``write``) as the
+CLI's options.
 
 ``--workdir W`` adds rows of a trained detector (W's checkpoint and config: its score
 threshold, so the post-processing sees what that detector keeps; copy a run folder first,
@@ -139,9 +142,15 @@ def run_stream(
 
     P2 = sources.load_projection(calib)
     source = sources.VideoSource(video, P2, str(calib), decode_threads=args.decode_threads)
-    annotated = None
+    annotated = recorder = None
     if not args.no_video:
-        annotated = outputs.AnnotatedVideo(out / f"annotated.{args.container}", source.fps)
+        codec = args.codec if args.container == "mp4" else None
+        annotated = outputs.AnnotatedVideo(out / f"annotated.{args.container}", source.fps, codec)
+    if args.mcap:
+        from gac_jax.streams.mcap_recording import McapRecording, McapResults
+
+        recording = McapRecording(out / "run.mcap", args.mcap_profile, (0.0, -1.0, 0.0, 1.65))
+        recorder = McapResults(recording, source.fps or 10.0)
     results, track = outputs.KittiResults(out / "data"), None
     if args.track:  # as predict --track: tracks drawn and written as KITTI tracking lines
         from gac_jax.api.tracker import Tracker3D
@@ -164,6 +173,7 @@ def run_stream(
         draw=functools.partial(detection_picture, scale=args.video_scale),
         network_requests=detector.requests,
         track=track,
+        recorder=recorder,
     )
     threads = ThreadCpu()
     threads.start()
@@ -173,14 +183,16 @@ def run_stream(
         other = threads.stop()  # before the encoder's threads end with the writer
         cpu_s, wall_s = time.process_time() - cpu0, time.perf_counter() - t0
     finally:
-        if annotated is not None:
-            annotated.close()
+        for output in (annotated, recorder):
+            if output is not None:
+                output.close()
         source.close()
     if report.error is not None:
         raise report.error
     n = max(report.written, 1)
     stage_cpu = pipeline.stage_ms(cpu=True)
     xla_ms = 1e3 * other["xla_s"] / n
+    encoder_ms = 1e3 * annotated.encoder_cpu_s / n if annotated is not None else 0.0
     return {
         "fps": report.rates["fps"],
         "latencies": pipeline.rates.latencies().tolist(),
@@ -190,8 +202,10 @@ def run_stream(
         "stage_ms": report.stage_ms,
         "stage_cpu_ms": stage_cpu,
         "xla_cpu_ms": xla_ms,
-        # runtime inference threads + encoder threads + the rest of the process
-        "other_cpu_ms": 1e3 * cpu_s / n - sum(stage_cpu.values()) - xla_ms,
+        "encoder_cpu_ms": encoder_ms,
+        "mcap_cpu_ms": 1e3 * recorder.recording.cpu_s / n if recorder is not None else 0.0,
+        # runtime inference threads + the rest of the process
+        "other_cpu_ms": 1e3 * cpu_s / n - sum(stage_cpu.values()) - xla_ms - encoder_ms,
         "cpu_ms_per_frame": 1e3 * cpu_s / n,
         "wall_core_ms_per_frame": 1e3 * wall_s * cpu_info()["cores"] / n,
     }
@@ -270,7 +284,13 @@ def measure(detector, video: Path, calib: Path, out: Path, args) -> dict:
         "cpu_ms_per_frame": float(np.median([r["cpu_ms_per_frame"] for r in results])),
         **{
             k: float(np.median([r[k] for r in results]))
-            for k in ("xla_cpu_ms", "other_cpu_ms", "wall_core_ms_per_frame")
+            for k in (
+                "xla_cpu_ms",
+                "encoder_cpu_ms",
+                "mcap_cpu_ms",
+                "other_cpu_ms",
+                "wall_core_ms_per_frame",
+            )
         },
         "frames_written": [r["frames"] for r in results],
         "load_avg_1min": round(os.getloadavg()[0], 2),
@@ -305,9 +325,13 @@ def print_row(label: str, row: dict) -> None:
     print(f"    ms per frame, each stage (overlapping): {busy}")
     busy = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_cpu_ms"].items())
     print(f"    CPU ms per frame of each stage's thread: {busy}")
+    recording = (
+        f" (of it the MCAP recording {row['mcap_cpu_ms']:.1f})" if row["mcap_cpu_ms"] else ""
+    )
     print(
-        f"    + XLA threads {row['xla_cpu_ms']:.1f}, runtime/encoder/other threads "
-        f"{row['other_cpu_ms']:.1f}; total {row['cpu_ms_per_frame']:.1f} core-ms per frame "
+        f"    + XLA threads {row['xla_cpu_ms']:.1f}, video encoder thread "
+        f"{row['encoder_cpu_ms']:.1f}, runtime/other threads {row['other_cpu_ms']:.1f}; the "
+        f"write stage{recording} is above; total {row['cpu_ms_per_frame']:.1f} core-ms per frame "
         f"of {row['wall_core_ms_per_frame']:.1f} (wall x cores: "
         f"{row['cpu_ms_per_frame'] / row['wall_core_ms_per_frame']:.0%} busy)"
     )
@@ -325,9 +349,11 @@ def print_row(label: str, row: dict) -> None:
         flush=True,
     )
     host = sum(v for k, v in row["stage_cpu_ms"].items() if k != "network")
+    host += row["encoder_cpu_ms"]
     net = row["infer_cpu_ms"]
     print(
-        f"    host stages (read, prepare, finish + draw, write) H {host:.1f} core-ms per frame; "
+        f"    host stages (read, prepare, finish + draw, write, encoder) H {host:.1f} core-ms per "
+        "frame; "
         f"when the network alone (N) keeps every core busy, a stream reaches at most "
         f"N / (N + H) = {net / (net + host):.0%} of its rate",
         flush=True,
@@ -395,6 +421,9 @@ def main() -> None:
     p.add_argument("--track", action="store_true", help="as predict --track (the 3D tracker)")
     p.add_argument("--video-scale", type=float, default=1.0)
     p.add_argument("--container", default="mp4", choices=("mp4", "avi"))
+    p.add_argument("--codec", default="h264", choices=("h264", "mjpeg"), help="of the mp4")
+    p.add_argument("--mcap", action="store_true", help="also an MCAP recording of every frame")
+    p.add_argument("--mcap-profile", default="foxglove", choices=("foxglove", "ros2"))
     p.add_argument(
         "--decode-threads",
         type=int,
@@ -424,6 +453,8 @@ def main() -> None:
         f"AVX512_BF16 {flags['avx512_bf16']}, int8 dot products {flags['int8_dot']}"
     )
     video_kind = "no video" if args.no_video else f"{args.container} video x{args.video_scale:g}"
+    video_kind += f" ({args.codec})" if args.container == "mp4" and not args.no_video else ""
+    video_kind += f", MCAP ({args.mcap_profile})" if args.mcap else ""
     video_kind += ", tracking" if args.track else ""
     print(f"{budget.describe('openvino')}; output: {video_kind}")
     combos = [c for c in RUNTIME_PRECISIONS if not args.only or " ".join(c) in args.only.split(",")]

@@ -23,7 +23,7 @@ import pytest
 
 from gac_jax.data.files import read_image
 from gac_jax.data.kitti import KittiObjects, read_calib, write_calib
-from gac_jax.streams import mp4_fragments, outputs
+from gac_jax.streams import outputs
 
 SIZE = (370, 1224)  # the smallest vendored frame: the others are cut to it (same P2)
 REPO = Path(__file__).resolve().parents[1]
@@ -61,6 +61,30 @@ def count_frames(path: Path) -> int:
     return n
 
 
+def decoded_frames(path: Path) -> tuple[str, int]:
+    """The codec of an MP4 and the frames PyAV decodes."""
+    import av
+
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        return stream.codec_context.name, sum(1 for _ in container.decode(stream))
+
+
+def recorded_stamps(path: Path) -> list[int]:
+    """Stamps of the first channel's messages in the whole chunks of an MCAP file (one
+    without a summary ends at its cut)."""
+    import io
+
+    from mcap.stream_reader import StreamReader
+
+    stamps = []
+    with contextlib.suppress(Exception):  # the cut: EndOfFile, or a record cut short
+        for record in StreamReader(io.BytesIO(path.read_bytes()), skip_magic=False).records:
+            if type(record).__name__ == "Message" and record.channel_id == 1:
+                stamps.append(record.log_time)
+    return stamps
+
+
 def hidden(folder: Path) -> list[str]:
     return sorted(p.name for p in folder.rglob(".*"))
 
@@ -88,8 +112,8 @@ def small_filesystem(folder: Path, size: str):
                           capture_output=True, text=True)  # fmt: skip
     if done.returncode != 0:
         reason = done.stderr.strip()
-        pytest.skip(f"cannot mount a small tmpfs here ({reason}); the injected ENOSPC of "
-                    "test_a_failed_write_keeps_whole_frames_and_lines still runs")  # fmt: skip
+        pytest.skip(f"cannot mount a small tmpfs here ({reason}); the injected ENOSPC tests "
+                    "of the writers still run")  # fmt: skip
     try:
         yield folder
     finally:
@@ -99,10 +123,12 @@ def small_filesystem(folder: Path, size: str):
 def test_a_full_disk_keeps_a_playable_prefix_and_the_earlier_video(
     tiny_detect3d_workdir, stream_input, tmp_path
 ):
-    """The video and results on a 4 MB filesystem that fills up after about 20 frames, over
-    an earlier video of the same name (``--overwrite``): one line naming the file and "no
-    space left", exit 1; the frames written so far play as ``annotated.incomplete.mp4`` and
-    match the result files one to one; the earlier video is untouched; nothing hidden."""
+    """The video, results and an MCAP recording on a 4 MB filesystem that fills up after
+    about 15 frames, over an earlier video of the same name (``--overwrite``): one line naming
+    the file and "no space left", exit 1; the frames written so far play as
+    ``annotated.incomplete.mp4`` (H.264) and match the result files one to one; the recording
+    is kept as ``run.incomplete.mcap`` and reads back to its last whole chunk; the earlier
+    video is untouched; nothing hidden."""
     make_video, calib = stream_input
     video = make_video("slow.avi", 60, fps=2.0)  # 2 frames/s: a few seconds of video fit
     with small_filesystem(tmp_path / "small", "4m") as disk:
@@ -114,7 +140,8 @@ def test_a_full_disk_keeps_a_playable_prefix_and_the_earlier_video(
         earlier.close()
         before = (out / "annotated.mp4").read_bytes()
         argv = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", calib]
-        process = predict([*argv, "--out", out, "--overwrite", "--report-every", 0])
+        mcap = ["--mcap", out / "run.mcap"]
+        process = predict([*argv, "--out", out, "--overwrite", "--report-every", 0, *mcap])
         stdout, stderr = process.communicate(timeout=300)
         assert process.returncode == 1, (stdout, stderr)
         one_line(stderr, "no space left on device", str(out))
@@ -122,20 +149,27 @@ def test_a_full_disk_keeps_a_playable_prefix_and_the_earlier_video(
         written = len(list((out / "data").glob("*.txt")))
         assert 0 < written < 60
         assert count_frames(out / "annotated.incomplete.mp4") == written
+        assert decoded_frames(out / "annotated.incomplete.mp4") == ("h264", written)
+        stamps = recorded_stamps(out / "run.incomplete.mcap")  # the video lags by a few frames
+        assert len(stamps) <= written + 4 and stamps == [
+            i * 500_000_000 for i in range(len(stamps))
+        ]
         assert (out / "annotated.mp4").read_bytes() == before
         assert hidden(out) == []
 
 
 @pytest.mark.parametrize("when", ["stream", "start-up"])
 def test_sigterm_ends_a_stream_as_ctrl_c_does(tiny_detect3d_workdir, stream_input, tmp_path, when):
-    """SIGTERM mid-stream: reading stops, the frames in flight finish, a playable video of
-    exactly the frames with result files, the summary, exit 143. During start-up (the output
-    folder is made after the input opened, before the model loads): one line, exit 143,
-    nothing written, no traceback, nothing hidden."""
+    """SIGTERM mid-stream: reading stops, the frames in flight finish, a playable H.264 video
+    and a finished MCAP recording (its summary written: the last chunk finished) of exactly
+    the frames with result files, the summary, exit 143. During start-up (the output folder is
+    made after the input opened, before the model loads): one line, exit 143, nothing
+    written, no traceback, nothing hidden."""
     make_video, calib = stream_input
     video = make_video("long.avi", 400, fps=10.0)
     out = tmp_path / "out"
-    argv = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", calib, "--out", out]
+    argv = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", calib, "--out", out,
+            "--mcap", out / "run.mcap"]  # fmt: skip
     process = predict(argv)
     deadline = time.monotonic() + 240
     target = 5 if when == "stream" else 0
@@ -155,6 +189,12 @@ def test_sigterm_ends_a_stream_as_ctrl_c_does(tiny_detect3d_workdir, stream_inpu
         return
     written = len(list((out / "data").glob("*.txt")))
     assert 5 <= written < 400 and count_frames(out / "annotated.mp4") == written
+    assert decoded_frames(out / "annotated.mp4") == ("h264", written)
+    from mcap.reader import make_reader
+
+    with open(out / "run.mcap", "rb") as f:
+        counts = make_reader(f).get_summary().statistics.channel_message_counts
+    assert counts and set(counts.values()) == {written}
     assert "SIGTERM: reading stopped" in stdout and "in flight finished" in stdout
     assert f"{written} frames -> " in stdout and stderr.strip() == "", stderr
 
@@ -177,6 +217,9 @@ def test_outputs_and_numbers_are_refused_before_the_model_loads(
         (["--workdir", tiny_detect3d_workdir, "--camera", -1, "--calib", calib], (), ("--camera",)),
         ([*base, "--report-every", -1], (), ("--report-every", ">= 0")),
         ([*base, "--fps", "nan"], (), ("--fps",)),
+        ([*base, "--out", tmp_path / "o3", "--codec", "vp9"], (), ("--codec", "unknown codec")),
+        ([*base, "--out", tmp_path / "o4", "--mcap", tmp_path], (), ("is a folder", "--mcap")),
+        ([*base, "--out", tmp_path / "o5", "--mcap-profile", "ros2"], (), ("goes with --mcap",)),
     ]
     if os.geteuid() == 0:  # root writes anywhere: drop the capability that lets it
         if shutil.which("capsh") is None:
@@ -209,10 +252,10 @@ def test_outputs_and_numbers_are_refused_before_the_model_loads(
     assert len(startup) == 1 and "not counted in the rates" in startup[0], stdout
 
 
-def test_a_failed_write_keeps_whole_frames_and_lines(tmp_path, monkeypatch):
-    """ENOSPC injected at the writers' ``os.pwrite`` (as a full disk answers, after a short
-    write): the video keeps its whole frames (the failed one cut off again) and is kept as
-    ``.incomplete``; the JSON lines file ends on its last whole line."""
+def test_a_failed_write_keeps_whole_lines(tmp_path, monkeypatch):
+    """ENOSPC injected at the JSON lines writer's ``os.pwrite`` (as a full disk answers,
+    after a short write): the file ends on its last whole line and is kept as ``.incomplete``
+    (the video's full disk: tests/test_stream_recordings.py)."""
     real = os.pwrite
     budget = {"bytes": None}
 
@@ -226,20 +269,6 @@ def test_a_failed_write_keeps_whole_frames_and_lines(tmp_path, monkeypatch):
         return real(fd, bytes(data[:n]), offset)
 
     monkeypatch.setattr(os, "pwrite", full_disk)
-    video = outputs.AnnotatedVideo(tmp_path / "v.mp4", 10.0)
-    rng = np.random.default_rng(0)
-    pictures = [rng.integers(0, 255, (40, 64, 3), np.uint8) for _ in range(3)]
-    for picture in pictures[:2]:
-        video.write(picture)
-    budget["bytes"] = 100  # the third frame is cut short, then the disk is full
-    with pytest.raises(OSError, match="No space left") as info:
-        video.write(pictures[2])
-    assert info.value.filename == str(tmp_path / "v.mp4")
-    budget["bytes"] = None
-    assert video.close(complete=False) == tmp_path / "v.incomplete.mp4"
-    assert count_frames(tmp_path / "v.incomplete.mp4") == 2
-    assert not (tmp_path / "v.mp4").exists() and hidden(tmp_path) == []
-
     results = outputs.JsonlResults(tmp_path / "r.jsonl")
     results.write("000000", 0, KittiObjects.empty(), {"objects": []})
     budget["bytes"] = 7
@@ -249,19 +278,6 @@ def test_a_failed_write_keeps_whole_frames_and_lines(tmp_path, monkeypatch):
     kept = results.close(complete=False)
     assert kept == tmp_path / "r.incomplete.jsonl"
     assert [json.loads(line)["frame"] for line in kept.read_text().splitlines()] == ["000000"]
-
-
-def test_fragmented_mp4_frames_timing_and_a_cut_file():
-    """The box layout: one fragment per frame, exact frame timing for 10 and 29.97 frames/s."""
-    assert mp4_fragments.frame_timing(10.0) == (1000, 100)
-    timescale, ticks = mp4_fragments.frame_timing(30000 / 1001)
-    assert timescale / ticks == pytest.approx(30000 / 1001, rel=1e-12)
-    head, mehd_at = mp4_fragments.header(64, 40, 1000, 100)
-    assert head[4:8] == b"ftyp" and head[mehd_at - 8 : mehd_at - 4] == b"mehd"
-    unit = mp4_fragments.fragment(3, 200, b"\xff\xd8jpeg\xff\xd9")
-    moof_size = int.from_bytes(unit[:4], "big")
-    assert unit[4:8] == b"moof" and unit[moof_size + 4 : moof_size + 8] == b"mdat"
-    assert unit.endswith(b"\xff\xd8jpeg\xff\xd9")
 
 
 NO_MAIN_GUARD = """

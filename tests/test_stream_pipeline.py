@@ -206,10 +206,10 @@ def test_jsonl_and_partial_files(tmp_path):
         outputs.AnnotatedVideo(tmp_path / "x.gif", 10)
 
 
-@pytest.mark.parametrize("suffix, size", [(".mp4", (47, 81)), (".avi", (48, 82))])
+@pytest.mark.parametrize("suffix, size", [(".mp4", (48, 82)), (".avi", (48, 82))])
 def test_odd_picture_sizes(tmp_path, suffix, size):
-    """Frames of an odd size: JPEG frames of an MP4 keep it; OpenCV's AVI writer pads them to
-    an even one (FFmpeg would cut a row and column)."""
+    """Frames of an odd size are padded to an even one (yuv420p needs it; FFmpeg would cut a
+    row and column): an MP4 repeats the last row and column, OpenCV's AVI writer adds black."""
     video = outputs.AnnotatedVideo(tmp_path / f"v{suffix}", 10.0)
     for value in (50, 150):
         video.write(np.full((47, 81, 3), value, np.uint8))

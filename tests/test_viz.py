@@ -292,7 +292,7 @@ def test_labels_of_nearby_boxes_do_not_overlap(frames):
     crowd = crowd.replace(score=np.linspace(0.2, 0.95, len(crowd)))
     texts = [f"{t} {s:.2f}" for t, s in zip(crowd.type, crowd.score, strict=True)]
     corners = np.repeat(np.array([[100.0, 50.0]]), len(texts), axis=0)
-    spots = viz._label_boxes(texts, corners, (375, 1242), 0.4)
+    spots = viz.place_labels(texts, corners, (375, 1242), 0.4)
     placed = [s for s in spots if s is not None]
     assert len(placed) == 4 and spots[0] == (100, 50, *spots[0][2:])  # the first keeps its place
     cover = np.zeros((375, 1242), int)

@@ -5,8 +5,8 @@ detector, written as an annotated video and per-frame results while it runs.
         --clip [N]) [--calib FILE] [--plane FILE] [--out DIR] [--out-video FILE] [--no-images]
         [--jsonl] [--realtime] [--fps F] [--max-frames N] [--report-every S]
         [--runtime R] [--precision P] [--batch-size B] [--threads T] [--score-threshold S]
-        [--track [--poses FILE]]
-        [--no-video] [--video-scale S] [--network-requests N]
+        [--track] [--poses FILE] [--mcap FILE [--mcap-profile foxglove|ros2]]
+        [--no-video] [--video-scale S] [--codec h264|mjpeg] [--network-requests N]
 
 A video or camera needs ``--calib FILE`` (a KITTI calibration of any format,
 :mod:`gac_jax.data.kitti_calib`, checked against the frame size); a ``--sequence`` in the
@@ -24,14 +24,17 @@ the video stays playable; exit 130 / 143 / 129 (:mod:`gac_jax.streams.stop_signa
 outputs are checked before the model is loaded (:mod:`gac_jax.streams.output_plan`: a folder
 with an earlier run's results needs ``--overwrite``); a failed write ends the run with one
 line and exit 1, keeping the frames written so far (:mod:`gac_jax.streams.outputs`).
-``--track``: objects over frames (:mod:`gac_jax.cli.predict_track`).
+``--track``: objects over frames (:mod:`gac_jax.cli.predict_track`). ``--mcap FILE``: an MCAP
+recording of the frames, calibration, boxes, ground plane and poses for Foxglove
+(``--mcap-profile ros2``: ROS 2 messages; :mod:`gac_jax.streams.mcap_recording`).
 
 Throughput: ``--no-video`` writes the results only; ``--video-scale 0.5`` draws and encodes a
-half-size annotated frame; the container sets the encoder (``.mp4``: Motion JPEG frames in a
-fragmented MP4 that stays playable after any stop, :mod:`gac_jax.streams.mp4_fragments`;
-``.avi`` / ``.mkv``: OpenCV's writer, playable after a clean close); ``--network-requests 2``
-keeps two network calls in flight (OpenVINO: two streams sharing the ``--threads``). The
-stream sizes its threads as one budget (:mod:`gac_jax.streams.thread_budget`), printed.
+half-size annotated frame; ``.mp4`` is H.264 (``--codec mjpeg``: Motion JPEG) in a fragmented
+MP4 that stays playable after any stop, encoded on a thread of its own
+(:mod:`gac_jax.streams.video_encoder`); ``.avi`` / ``.mkv``: OpenCV's Motion JPEG writer,
+playable after a clean close; ``--network-requests 2`` keeps two network calls in flight
+(OpenVINO: two streams sharing the ``--threads``). The stream sizes its threads as one budget
+(:mod:`gac_jax.streams.thread_budget`), printed.
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ import os
 import sys
 from pathlib import Path
 
-from gac_jax.cli import predict_track
+from gac_jax.cli import predict_recording, predict_track
 from gac_jax.data.files import KittiFormatError
 from gac_jax.data.kitti_raw import RawDrive
 
@@ -92,6 +95,7 @@ def add_stream_arguments(parser: argparse.ArgumentParser) -> None:
         "earlier video is replaced when the new one is complete)",
     )
     predict_track.add_tracking_arguments(group)
+    predict_recording.add_recording_arguments(group)
     add_throughput_arguments(group)
 
 
@@ -107,6 +111,12 @@ def add_throughput_arguments(group) -> None:
         default=1.0,
         metavar="S",
         help="annotated video at S times the input's size (0 < S <= 1; less to draw and encode)",
+    )
+    group.add_argument(
+        "--codec",
+        metavar="C",
+        help="video codec of an .mp4: h264 (default; browsers play it) or mjpeg (Motion JPEG; "
+        ".avi / .mkv are Motion JPEG)",
     )
     group.add_argument(
         "--network-requests",
@@ -140,8 +150,13 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
         parser.error("give IMAGE_OR_DIR or one of --video, --camera, --sequence, --clip")
     if args.out_video is not None and args.no_images:
         parser.error("--out-video and --no-images: give one (--no-images writes no video)")
+    recording_problem = predict_recording.option_problem(args)
+    if recording_problem is not None:
+        print(f"error: {recording_problem}", file=sys.stderr)
+        raise SystemExit(2)
     if not given:
         stream_only = ["plane", "out_video", "jsonl", "realtime", "fps", "max_frames", "overwrite"]
+        stream_only += ["mcap"]
         used = [
             f"--{k.replace('_', '-')}" for k in stream_only if getattr(args, k) not in (None, False)
         ]
@@ -150,6 +165,7 @@ def check_stream_arguments(parser: argparse.ArgumentParser, args: argparse.Names
             for k, v in (
                 ("video-scale", args.video_scale != 1.0),
                 ("network-requests", args.network_requests != 1),
+                ("codec", args.codec is not None),
             )
             if v
         ]
@@ -283,6 +299,8 @@ def plan_outputs(args: argparse.Namespace, source=None, clear: bool = True):
     plan = output_plan.plan_outputs(
         out, video, args.jsonl, inputs, args.overwrite, clear, track=bool(args.track)
     )
+    if args.mcap is not None:
+        predict_recording.check_mcap_output(Path(args.mcap), inputs, args.overwrite, clear)
     if source is not None:
         h, w = source.size
         output_plan.check_free_space(plan, h * (w + h), source.fps)
@@ -385,16 +403,16 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
     if not workdir.is_dir():
         raise KittiFormatError(workdir, "workdir not found")
     if args.out_video is not None:
-        outputs.check_video_path(args.out_video)
+        outputs.check_video_path(args.out_video, args.codec)
     budget = stream_thread_budget(args)
     source = open_source(args, budget.host_threads)
-    video = results = None
+    video = results = recorder = None
     try:
         plan = plan_outputs(args, source)
         for line in getattr(source, "found", ()):  # what a sequence's layout gave
             print(line, flush=True)
         log = functools.partial(print, flush=True)
-        poses = predict_track.stream_poses(args, source, log) if args.track else None
+        poses = predict_track.stream_poses(args, source, log) if args.track or args.mcap else None
         signals.check()
         t_load = time.perf_counter()
         detector = load_detector(args)
@@ -419,7 +437,9 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
         if args.realtime and not source.live:  # a recording replayed as a live camera
             source = sources.PacedSource(source, source.fps or DEFAULT_FPS)
         if plan.video is not None:
-            video = outputs.AnnotatedVideo(plan.video, source.fps)
+            video = outputs.AnnotatedVideo(plan.video, source.fps, args.codec)
+        if args.mcap is not None:
+            recorder = predict_recording.open_recording(args, detector, source, poses)
         track = None
         if args.track:
             fps = source.fps or DEFAULT_FPS
@@ -443,6 +463,7 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
             track=track,
             draw=functools.partial(detection_picture, scale=args.video_scale),
             network_requests=budget.requests,
+            recorder=recorder,
         )
         signals.check()
         signals.pipeline = pipeline
@@ -450,19 +471,10 @@ def _run_stream(args: argparse.Namespace, threads: int, signals) -> int:
             report = pipeline.run()
         finally:
             complete = pipeline.write_error is None
-            kept, close_error = [], None
-            for output in (video, results):
-                if output is None:
-                    continue
-                try:
-                    where = output.close(complete)
-                except OSError as e:
-                    close_error = close_error or e
-                    where = getattr(output, "kept", None)
-                if where is not None:
-                    kept.append(os.fspath(where))
+            kept, close_error = outputs.close_outputs(video, [results, recorder], complete)
+            kept = [os.fspath(where) for where in kept]
     except BaseException:
-        for output in (video, results):  # start-up failed: nothing of this run is kept
+        for output in (video, results, recorder):  # start-up failed: nothing of this run is kept
             if output is not None and getattr(output, "partial", None) is not None:
                 with contextlib.suppress(OSError):
                     output.close(False)

@@ -37,15 +37,15 @@ def add_tracking_arguments(group) -> None:
     group.add_argument(
         "--poses",
         metavar="FILE",
-        help="with --track: ego poses, one line per frame (KITTI odometry: camera -> first "
-        "frame); a tracking-layout sequence's poses/SSSS.txt or oxts/SSSS.txt and a KITTI raw "
-        "drive's oxts/ are found by themselves",
+        help="with --track or --mcap: ego poses, one line per frame (KITTI odometry: camera -> "
+        "first frame); a tracking-layout sequence's poses/SSSS.txt or oxts/SSSS.txt and a KITTI "
+        "raw drive's oxts/ are found by themselves",
     )
 
 
 def check_tracking_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    if args.poses is not None and not args.track:
-        parser.error("--poses goes with --track")
+    if args.poses is not None and not (args.track or args.mcap):
+        parser.error("--poses goes with --track or --mcap")
     if args.track and args.input is not None:
         parser.error("--track applies to --video/--camera/--sequence/--clip only")
     if args.poses is not None and args.camera is not None:

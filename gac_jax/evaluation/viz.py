@@ -161,7 +161,7 @@ def _polylines(canvas, points: np.ndarray, closed: bool, color, thickness) -> No
         cv2.polylines(canvas, pts, closed, color, thickness, cv2.LINE_AA, _SHIFT)
 
 
-def _label_boxes(
+def place_labels(
     texts: Sequence[str], corners: np.ndarray, image_size: tuple[int, int], scale: float
 ) -> list[tuple[int, int, int, int, int] | None]:
     """Where each label goes: ``(x, y, w, h, baseline)`` inside the top-left corner of its box
@@ -192,8 +192,8 @@ def _label_boxes(
     return out
 
 
-def _draw_label(canvas, text, spot, color, scale=0.4):
-    """Text on a filled strip at ``spot`` (:func:`_label_boxes`)."""
+def draw_label(canvas, text, spot, color, scale=0.4):
+    """Text on a filled strip at ``spot`` (:func:`place_labels`)."""
     x, y, w, h, _ = spot
     cv2.rectangle(canvas, (x, y), (x + w - 1, y + h - 1), color, cv2.FILLED)
     luma = 0.299 * color[0] + 0.587 * color[1] + 0.114 * color[2]
@@ -228,12 +228,12 @@ def draw_objects_into(
     """Draws objects on ``canvas`` itself ((H, W, 3) uint8 RGB; a view into a larger picture
     is fine): all wireframes in one ``cv2.polylines`` call per run of one colour, then the 2D
     boxes likewise, then the labels (highest score placed first, none covering another:
-    :func:`_label_boxes`).
+    :func:`place_labels`).
 
     Args:
       canvas: the picture; P2: (3, 4) projection of this image.
       objects: boxes in this image's camera frame; ``bbox`` in its pixels.
-      color: one colour for all, or None for :func:`class_color` per class.
+      color: one colour for all, a list of one per object, or None: :func:`class_color`.
       draw_3d: projected wireframes with the front-face cross (DontCare and
         boxes without dimensions are skipped; edges behind ``near`` are cut).
       draw_2d: the ``bbox`` rectangles (thin).
@@ -241,8 +241,12 @@ def draw_objects_into(
         of the object's 2D extent (projected 3D box, or ``bbox`` without 3D).
     """
     size = canvas.shape[:2]
-    objects = objects.select(objects.type != "DontCare")
-    colors = [color if color is not None else class_color(t) for t in objects.type]
+    kept = objects.type != "DontCare"
+    objects = objects.select(kept)
+    if isinstance(color, list):  # one per object
+        colors = [c for c, k in zip(color, kept, strict=True) if k]
+    else:
+        colors = [color if color is not None else class_color(t) for t in objects.type]
     has_3d = drawable(objects)
     drawn_3d = np.zeros(len(objects), bool)
     extent = objects.bbox.copy()
@@ -280,11 +284,11 @@ def draw_objects_into(
         for i in order
     }
     spots = dict(
-        zip(order, _label_boxes([texts[i] for i in order], extent[order], size, 0.4), strict=True)
+        zip(order, place_labels([texts[i] for i in order], extent[order], size, 0.4), strict=True)
     )
     for i in labelled:  # in the objects' order, as before
         if spots[i] is not None:
-            _draw_label(canvas, texts[i], spots[i], colors[i])
+            draw_label(canvas, texts[i], spots[i], colors[i])
 
 
 def draw_detections(image: np.ndarray, P2: np.ndarray, *objects, **options) -> np.ndarray:
@@ -386,8 +390,12 @@ def _bev_background_cached(grid: BevGrid, background: Color, line: Color) -> np.
 
 
 def _bev_boxes(canvas, grid, objects, color, thickness):
-    """Footprints (one ``cv2.polylines`` per run of one colour) and their heading marks."""
-    objects = objects.select(drawable(objects))
+    """Footprints (one ``cv2.polylines`` per run of one colour) and heading marks (``color``:
+    one, one per object, or None: per class)."""
+    shown = drawable(objects)
+    if isinstance(color, list):
+        color = [c for c, k in zip(color, shown, strict=True) if k]
+    objects = objects.select(shown)
     if not len(objects):
         return
     corners = geometry.box3d_corners(objects.location, objects.dimensions, objects.rotation_y)
@@ -395,7 +403,7 @@ def _bev_boxes(canvas, grid, objects, color, thickness):
     centre = footprint.mean(axis=1)
     front = footprint[:, :2].mean(axis=1)  # corners 0, 1: the front (+x) edge
     heading = np.stack([centre, front], axis=1)  # (N, 2, 2)
-    colors = [color if color is not None else class_color(t) for t in objects.type]
+    colors = color if isinstance(color, list) else [color or class_color(t) for t in objects.type]
     for c, start, stop in _colour_runs(colors):
         _polylines(canvas, footprint[start:stop], True, c, thickness)
         _polylines(canvas, heading[start:stop], False, c, thickness)
@@ -425,15 +433,16 @@ def draw_bev_into(
     thickness: int = 2,
     background: Color = (24, 24, 24),
     grid_color: Color = (80, 80, 80),
+    colors: list[Color] | None = None,
 ) -> None:
     """:func:`draw_bev` into ``canvas`` ((H, W, 3) uint8 of ``grid.size``, may be a view):
-    the grid picture copied in, then the boxes."""
+    the grid picture, then the boxes (``colors``: one per prediction, default per class)."""
     grid = grid or BevGrid()
     canvas[:] = _bev_background_cached(grid, tuple(background), tuple(grid_color))
     if ground_truth is not None:
         _bev_boxes(canvas, grid, ground_truth, GT_COLOR, thickness)
     if predictions is not None:
-        _bev_boxes(canvas, grid, predictions, None, thickness)
+        _bev_boxes(canvas, grid, predictions, colors, thickness)
 
 
 # --------------------------------------------------------------------------- layout

@@ -142,8 +142,10 @@ class StreamPipeline:
         draw: Callable = detection_picture,
         track=None,
         network_requests: int = 1,
+        recorder=None,
     ):
         self.source, self.detector = source, detector
+        self.recorder = recorder
         self.video, self.results = video, results
         self.realtime, self.batch_size = realtime, batch_size
         self.max_frames = max_frames
@@ -353,15 +355,16 @@ class StreamPipeline:
         off again where the container allows, so the video holds the frames with results."""
         if self.video is not None:
             self.video.write(picture)
-        if self.results is None:
-            return
-        record = det.to_dict() if needs_record else {}
-        try:
-            self.results.write(frame.frame_id, frame.index, objects, record)
-        except BaseException:
-            if self.video is not None:
-                self.video.drop_last()
-            raise
+        record = det.to_dict() if needs_record and self.results is not None else {}
+        if self.results is not None:
+            try:
+                self.results.write(frame.frame_id, frame.index, objects, record)
+            except BaseException:
+                if self.video is not None:
+                    self.video.drop_last()
+                raise
+        if self.recorder is not None:
+            self.recorder.write_frame(frame, det, record)
 
     # ------------------------------------------------------------------ run
 

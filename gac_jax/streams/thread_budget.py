@@ -1,10 +1,12 @@
 """One thread budget for a stream: how many threads each library may run, so the stages do
 not oversubscribe the cores.
 
-A stream runs five stage threads (read, prepare, network, finish + draw, write). Only the
-network is worth parallelising inside: the host stages already run side by side, so OpenCV
-(resize, colour conversion, drawing, encoding) and the BLAS under numpy get one thread each
-(a second would only compete with the other stages), and the network gets every usable core:
+A stream runs five stage threads (read, prepare, network, finish + draw, write) and, for an
+MP4 video, an encoder thread (colour conversion, libx264 with one thread of its own work,
+muxing: :mod:`gac_jax.streams.video_encoder`). Only the network is worth parallelising inside:
+the host stages already run side by side, so OpenCV (resize, colour conversion, drawing,
+encoding) and the BLAS under numpy get one thread each (a second would only compete with the
+other stages), and the network gets every usable core:
 
 * ONNX Runtime / OpenVINO: ``network_threads`` inference threads; with ``requests`` > 1
   OpenVINO's throughput hint splits them into that many streams (2 cores, 2 requests: two
@@ -58,7 +60,10 @@ class ThreadBudget:
             network = f"network {self.network_threads} {runtime} threads"
             if self.requests > 1:
                 network += f" in {self.requests} streams ({self.requests} calls in flight)"
-        return f"threads: {network}; OpenCV, BLAS and decoder {self.host_threads} per stage"
+        return (
+            f"threads: {network}; OpenCV, BLAS and decoder {self.host_threads} per stage; "
+            "video encoder 1 thread"
+        )
 
 
 def plan_thread_budget(

@@ -22,7 +22,7 @@ import numpy as np
 from gac_jax.api.tracker import Tracker3D
 from gac_jax.data.files import KittiFormatError
 from gac_jax.data.kitti import KittiObjects
-from gac_jax.evaluation.track_pictures import track_picture
+from gac_jax.evaluation.track_pictures import ImageTrails, track_picture
 from gac_jax.streams.outputs import JsonlResults
 from gac_jax.streams.sources import Frame
 from gac_jax.tracking.tracks import kitti_tracking_lines
@@ -55,6 +55,7 @@ class TrackingStage:
     ):
         self.tracker, self.fps, self.realtime, self.scale = tracker, fps, realtime, scale
         self.poses = None if poses is None else np.asarray(poses, np.float64)
+        self.trails = ImageTrails()  # the camera view's trails, over the pictures drawn
 
     def update(self, frame: Frame, detections):
         pose = None
@@ -64,14 +65,21 @@ class TrackingStage:
                     "poses", f"frame {frame.index} has none (they cover 0 to {len(self.poses) - 1})"
                 )
             pose = self.poses[frame.index]
-        if self.realtime:
-            timestamp = frame.t_read
-        else:
-            timestamp = frame.index / self.fps if frame.time is None else frame.time
+        timestamp = self.frame_time(frame)
         return self.tracker.update(detections, pose=pose, timestamp=timestamp, plane=frame.plane)
 
+    def frame_time(self, frame: Frame) -> float:
+        """Seconds: the read time with ``--realtime``, else the frame's own time (a raw
+        drive's timestamps.txt) or its index over the frame rate."""
+        if self.realtime:
+            return frame.t_read
+        return frame.index / self.fps if frame.time is None else frame.time
+
     def draw(self, frame: Frame, tracks) -> np.ndarray:
-        return track_picture(frame.image, frame.P2, tracks, scale=self.scale)
+        return track_picture(
+            frame.image, frame.P2, tracks, scale=self.scale, trails=self.trails,
+            timestamp=self.frame_time(frame), over_ground=self.poses is not None,
+        )  # fmt: skip
 
 
 class KittiTrackingResults(JsonlResults):
