@@ -58,7 +58,7 @@ def _project(loc, dims):
 
 
 def generate(root: Path, n_seq: int, n_frames: int, seed: int = 0) -> int:
-    """Writes ``label_02`` and ``results``; returns the number of ground-truth boxes."""
+    """Writes ``label_02``, ``results`` and the seqmap; returns the number of ground-truth boxes."""
     rng = np.random.default_rng(seed)
     (root / "label_02").mkdir(parents=True)
     (root / "results").mkdir()
@@ -105,6 +105,8 @@ def generate(root: Path, n_seq: int, n_frames: int, seed: int = 0) -> int:
         for name, rows in (("label_02", gt), ("results", res)):
             rows.sort(key=lambda r: r[0])
             (root / name / f"{s:04d}.txt").write_text("".join(r[1] for r in rows))
+    seqmap = "".join(f"{s:04d} empty 000000 {n_frames:06d}\n" for s in range(n_seq))
+    (root / "evaluate_tracking.seqmap.training").write_text(seqmap)  # the sequences' lengths
     return total
 
 

@@ -209,6 +209,8 @@ def test_cli_2d_only_results_and_empty_sequence(tmp_path, capsys):
         flat = [f[:10] + ["-1", "-1", "-1", "-1000", "-1000", "-1000", "-10", f[17]] for f in lines]
         path.write_text("".join(" ".join(f) + "\n" for f in flat))
     (tmp_path / "label_02" / "0003.txt").write_text("")
+    with (tmp_path / "evaluate_tracking.seqmap.training").open("a") as f:
+        f.write("0003 empty 000000 000004\n")
     out_json = tmp_path / "out.json"
     argv = ["--task", "track", "--label-dir", tmp_path / "label_02"]
     code, out, err = _run([*argv, "--result-dir", tmp_path / "results", "--json", out_json], capsys)

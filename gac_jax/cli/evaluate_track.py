@@ -27,7 +27,7 @@ from gac_jax.evaluation.tracking.evaluator import (
 )
 from gac_jax.evaluation.tracking.kitti_rules import TRACKING_CLASSES
 
-TRACK_ONLY_OPTIONS = ("poses_dir", "sequences", "frame_rate")
+TRACK_ONLY_OPTIONS = ("poses_dir", "sequences", "frame_rate", "seqmap", "allow_empty_results")
 
 
 def add_track_arguments(parser) -> None:
@@ -37,7 +37,20 @@ def add_track_arguments(parser) -> None:
     g.add_argument(
         "--poses-dir", help="folder of poses/SSSS.txt (default: 'poses' beside --label-dir)"
     )
-    g.add_argument("--sequences", help="comma-separated sequences to score (default: all)")
+    g.add_argument(
+        "--sequences", help="comma-separated sequences to score (default: the seqmap's, or all)"
+    )
+    g.add_argument(
+        "--seqmap",
+        help="seqmap file: the sequences to score and their lengths (default: the "
+        "evaluate_tracking.seqmap.* beside --label-dir, the training one of several)",
+    )
+    g.add_argument(
+        "--allow-empty-results",
+        action="store_true",
+        default=None,
+        help="score a result folder without any result line (refused otherwise)",
+    )
     g.add_argument(
         "--frame-rate",
         type=float,
@@ -87,15 +100,24 @@ def run(args, parser) -> dict:
         parser.error(f"--frame-rate must be positive, got {args.frame_rate}")
     sequences = [s.strip() for s in args.sequences.split(",")] if args.sequences else None
     result_dir = stream_results(Path(args.result_dir))
-    seqs = load_tracking_folders(label_dir, result_dir, sequences, poses_dir)
+    seqs = load_tracking_folders(
+        label_dir,
+        result_dir,
+        sequences,
+        poses_dir,
+        seqmap=args.seqmap,
+        allow_empty=bool(args.allow_empty_results),
+    )
     result = evaluate_tracking(seqs, classes, frame_rate)
     n_frames = sum(s.n_frames for s in seqs)
     n_res = sum(len(s.results) for s in seqs)
     missing = sum(not s.result_path.is_file() for s in seqs)
     with_poses = sum(s.poses is not None for s in seqs)
+    sources = sorted({s.length_source for s in seqs})
+    lengths = sources[0] if len(sources) == 1 else "the images, poses or labels of each"
     print(
-        f"{len(seqs)} sequences, {n_frames} frames, {n_res} result lines "
-        f"({result_dir} vs {label_dir}); {missing} sequences without a result file "
+        f"{len(seqs)} sequences, {n_frames} frames (lengths from {lengths}), {n_res} result "
+        f"lines ({result_dir} vs {label_dir}); {missing} sequences without a result file "
         f"(scored as no boxes); poses for {with_poses}"
     )
     print(format_tracking_table(result), end="")
@@ -107,6 +129,7 @@ def run(args, parser) -> dict:
         "sequences_with_poses": with_poses,
         "frame_rate": frame_rate,
         "label_dir": str(label_dir),
+        "lengths_from": sources,
         "result_dir": str(result_dir),
     }
     return result

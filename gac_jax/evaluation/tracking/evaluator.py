@@ -35,8 +35,10 @@ from gac_jax.evaluation.tracking.mot3d import (
     mot3d_metrics,
     velocity_errors,
 )
+from gac_jax.evaluation.tracking.seqmap import find_seqmap, read_seqmap
 from gac_jax.evaluation.tracking.tracking_files import (
     TrackRows,
+    check_frames,
     read_tracking_file,
     sequence_files,
 )
@@ -46,7 +48,8 @@ DEFAULT_FRAME_RATE = 10.0  # Hz, KITTI's
 
 @dataclasses.dataclass(frozen=True)
 class TrackingSequence:
-    """One sequence: its label and result rows, frame count, and poses ((n, 3, 4) or None)."""
+    """One sequence: its label and result rows, frame count (and where the count comes from),
+    and poses ((n, 3, 4) or None)."""
 
     name: str
     labels: TrackRows
@@ -55,6 +58,22 @@ class TrackingSequence:
     label_path: Path
     result_path: Path
     poses: np.ndarray | None = None
+    length_source: str = ""
+
+
+def _length(name, labels: TrackRows, label_path: Path, seqmap, poses, pose_path):
+    """(number of frames of sequence ``name``, where it comes from): the seqmap's count, else
+    the images beside ``label_02`` (``image_02/SSSS``), else the poses, else the labels."""
+    if seqmap is not None:
+        return seqmap[1][name], f"seqmap {seqmap[0]}"
+    images = label_path.parent.parent / "image_02" / name
+    numbers = [int(p.stem) for p in images.glob("*.png") if p.stem.isdigit()]
+    if numbers:
+        return max(numbers) + 1, f"the images in {images}"
+    if poses is not None:
+        return len(poses), f"the poses of {pose_path}"
+    n = int(labels.frame.max(initial=-1)) + 1
+    return n, f"the last labelled frame of {label_path}; give the length with a seqmap"
 
 
 def load_tracking_folders(
@@ -62,24 +81,36 @@ def load_tracking_folders(
     result_dir: str | os.PathLike,
     sequences: Sequence[str] | None = None,
     poses_dir: str | os.PathLike | None = None,
+    seqmap: str | os.PathLike | None = None,
+    allow_empty: bool = False,
 ) -> list[TrackingSequence]:
-    """Reads every labelled sequence (or ``sequences``) and its result file.
+    """Reads the sequences to score and their result files.
 
-    A labelled sequence without a result file has no tracker boxes. Raises
-    :class:`KittiFormatError` for a malformed file, a result file of a sequence without
-    labels, an unknown sequence in ``sequences``, or a frame beyond a sequence's poses.
+    The sequences are those of the seqmap (``seqmap``, else the ``evaluate_tracking.seqmap.*``
+    beside ``label_dir``: :mod:`.seqmap`), else every labelled one; ``sequences`` picks some
+    of them. A sequence's length is the seqmap's count, else its image count
+    (``image_02/SSSS`` beside ``label_dir``), else its poses' count, else its last labelled
+    frame + 1; a label or result line beyond it is refused. A sequence without a result file
+    has no tracker boxes; a result folder without any result line is refused unless
+    ``allow_empty``. Raises :class:`KittiFormatError` for any of these, a malformed file, a
+    result file of a sequence without labels or an unknown sequence in ``sequences``.
     """
     labels = sequence_files(label_dir, "label")
+    results = sequence_files(result_dir, "result")
+    seqmap_path = Path(seqmap) if seqmap is not None else find_seqmap(label_dir)
+    mapped = (seqmap_path, read_seqmap(seqmap_path)) if seqmap_path is not None else None
     if not labels:
         raise KittiFormatError(label_dir, "no label files (SSSS.txt) found")
-    results = sequence_files(result_dir, "result")
     orphans = sorted(set(results) - set(labels))
     if orphans:
         raise KittiFormatError(
             results[orphans[0]], f"result file of sequence {orphans[0]}, which has no labels"
         )
-    names = list(labels) if sequences is None else list(sequences)
+    listed = list(mapped[1]) if mapped is not None else list(labels)
+    names = listed if sequences is None else list(sequences)
     for name in names:
+        if mapped is not None and name not in mapped[1]:
+            raise KittiFormatError(seqmap_path, f"sequence {name} is not in this seqmap")
         if name not in labels:
             raise KittiFormatError(
                 Path(label_dir) / f"{name}.txt", f"unknown sequence {name} (no label file)"
@@ -91,18 +122,24 @@ def load_tracking_folders(
         res = read_tracking_file(result_path, with_score=True) if name in results else None
         if res is None:
             res = rows.take(np.zeros(0, np.int64))
-        n_frames = int(max(rows.frame.max(initial=-1), res.frame.max(initial=-1))) + 1
         poses = None
         pose_path = Path(poses_dir) / f"{name}.txt" if poses_dir is not None else None
         if pose_path is not None and pose_path.is_file():
             poses = parse_poses(read_bytes(pose_path, "poses file").decode("utf-8", "replace"))
-            for path, r in ((labels[name], rows), (result_path, res)):
-                if len(r) and r.frame.max() >= len(poses):
-                    raise KittiFormatError(
-                        path, f"frame {r.frame.max()} beyond the {len(poses)} poses of {pose_path}"
-                    )
-            n_frames = max(n_frames, len(poses))
-        out.append(TrackingSequence(name, rows, res, n_frames, labels[name], result_path, poses))
+        n_frames, source = _length(name, rows, labels[name], mapped, poses, pose_path)
+        for path, r in ((labels[name], rows), (result_path, res)):
+            check_frames(r, n_frames, path, source)
+            if poses is not None:
+                check_frames(r, len(poses), path, f"the poses of {pose_path}")
+        seq = TrackingSequence(name, rows, res, n_frames, labels[name], result_path, poses, source)
+        out.append(seq)
+    if not allow_empty and not any(len(s.results) for s in out):
+        what = "no result line in" if any(s.result_path.is_file() for s in out) else "no"
+        raise KittiFormatError(
+            result_dir,
+            f"{what} result files (SSSS.txt) of the {len(out)} sequences scored: an empty "
+            "result folder scores zero (say it is meant with --allow-empty-results)",
+        )
     return out
 
 
