@@ -17,6 +17,7 @@ import numpy as np
 
 from gac_jax.data.files import KittiFormatError, read_bytes
 from gac_jax.data.kitti_tracking import parse_poses
+from gac_jax.evaluation.tracking.ab3dmot_rules import ab3dmot_metrics
 from gac_jax.evaluation.tracking.clear import (
     COUNT_FIELDS as CLEAR_COUNTS,
 )
@@ -44,6 +45,13 @@ from gac_jax.evaluation.tracking.tracking_files import (
 )
 
 DEFAULT_FRAME_RATE = 10.0  # Hz, KITTI's
+# the 3D MOT block's rules: AB3DMOT's own script (the figures papers report; the default) or
+# TrackEval's CLEAR counting with the benchmark's rules, as the 2D table above it
+MOT3D_RULES = {"ab3dmot": ab3dmot_metrics, "trackeval": mot3d_metrics}
+MOT3D_RULE_NAMES = {
+    "ab3dmot": "AB3DMOT's script; MOTA at its best score threshold",
+    "trackeval": "TrackEval's CLEAR; MOTA of every track",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,6 +190,7 @@ def evaluate_tracking(
     classes: Sequence[str] = TRACKING_CLASSES,
     frame_rate: float = DEFAULT_FRAME_RATE,
     with_3d: bool | None = None,
+    mot3d_rule: str = "ab3dmot",
 ) -> dict:
     """KITTI tracking figures per class.
 
@@ -192,9 +201,12 @@ def evaluate_tracking(
       (``"car"``, ``"pedestrian"``), figures in [0, 1] (MOTA may be negative). ``curves``:
       the HOTA figures at each alpha; ``sequences``: ``{SSSS: SEQUENCE_FIELDS}`` (MOTA None
       for a sequence without ground truth of the class). ``mot3d``:
-      ``{"0.25": {sAMOTA, AMOTA, AMOTP, MOTA, thresholds}, "0.50": {...}}`` or None without
-      3D boxes; ``velocity``: :class:`VelocityErrors` as a dict, or None.
+      ``{"0.25": {sAMOTA, AMOTA, AMOTP, MOTA, thresholds, ...}, "0.50": {...}}`` by the rule
+      ``mot3d_rule`` (:data:`MOT3D_RULES`: :func:`.ab3dmot_metrics` or
+      :func:`.mot3d_metrics`; ``mot3d_rule`` names it), or None without 3D boxes;
+      ``velocity``: :class:`VelocityErrors` as a dict, or None.
     """
+    mot3d = MOT3D_RULES[mot3d_rule]
     out = {}
     for cls in classes:
         hs, cs, ids, per_seq = [], [], [], []
@@ -213,10 +225,9 @@ def evaluate_tracking(
         }
         use_3d = has_3d(sequences, CLASS_NAMES[cls]) if with_3d is None else with_3d
         res["mot3d"] = (
-            {f"{iou:.2f}": mot3d_metrics(sequences, cls, iou) for iou in MOT3D_IOUS}
-            if use_3d
-            else None
+            {f"{iou:.2f}": mot3d(sequences, cls, iou) for iou in MOT3D_IOUS} if use_3d else None
         )
+        res["mot3d_rule"] = mot3d_rule
         vel = [velocity_errors(s, seq, m, frame_rate) for s, seq, m in per_seq] if use_3d else []
         res["velocity"] = VelocityErrors.combine(vel).as_dict() if vel else None
         out[cls] = res
@@ -232,15 +243,20 @@ def format_tracking_table(result: dict) -> str:
         cells = [f"{100 * r[k]:8.2f}" for k in head[:7]]
         cells += [f"{r[k]:8d}" for k in ("IDSW", "Frag", "MT", "ML")]
         lines.append(f"{cls.capitalize():<11}" + "".join(cells))
-    blocks = [(c, r["mot3d"]) for c, r in result.items() if r.get("mot3d")]
+    blocks = [(c, r["mot3d"], r.get("mot3d_rule")) for c, r in result.items() if r.get("mot3d")]
     if blocks:
         lines.append("")
-        lines.append(f"{'3D MOT':<11}{'IoU':>6}{'sAMOTA':>9}{'AMOTA':>9}{'AMOTP':>9}{'MOTA':>9}")
-        for cls, m in blocks:
+        rule = MOT3D_RULE_NAMES.get(blocks[0][2], "")
+        head = f"{'3D MOT':<11}{'IoU':>6}{'sAMOTA':>9}{'AMOTA':>9}{'AMOTP':>9}{'MOTA':>9}"
+        lines.append(head + (f"   ({rule})" if rule else ""))
+        for cls, m, _ in blocks:
             for iou, v in m.items():
                 lines.append(
                     f"{cls.capitalize():<11}{iou:>6}"
-                    + "".join(f"{100 * v[k]:9.2f}" for k in ("sAMOTA", "AMOTA", "AMOTP", "MOTA"))
+                    + "".join(
+                        f"{'-':>9}" if v[k] is None else f"{100 * v[k]:9.2f}"
+                        for k in ("sAMOTA", "AMOTA", "AMOTP", "MOTA")
+                    )
                 )
     vel = [(c, r["velocity"]) for c, r in result.items() if r.get("velocity")]
     if vel:
