@@ -28,6 +28,7 @@ The sets (``SETS``, each ``SET/label_02/SSSS.txt``, ``SET/results/SSSS.txt`` and
   Vans, sitting persons (``Person``), DontCare regions and occluded ground truth, results of
   the Vans typed Car: the rules of the distractor classes.
 * ``clean_3d``: ``tests/tracking_cases.clean_3d_lines`` (written to a temporary folder).
+* ``score_drift``: :func:`score_drift_set`, the script's floating-point drift of track scores.
 """
 
 from __future__ import annotations
@@ -193,6 +194,27 @@ def clean_3d_set(root: Path) -> Path:
     return root
 
 
+def score_drift_set(root: Path) -> Path:
+    """One car over 7 frames, tracked by one track of score 0.17 on every line (its box 0.1 m
+    off: the script's polygon clipping overstates the IoU of coinciding boxes): the track's
+    mean is 0.16999999999999998, the mean of 7 such means 0.16999999999999996, so the script
+    drops the track at its own score, every threshold (its sAMOTA is 0)."""
+
+    def line(f, dx):
+        return (
+            f"{f} 0 Car 0 0 0 560.00 120.00 680.00 220.00 1.50 1.60 3.90 {dx:.4f} 1.6000 "
+            f"{15 + f + dx / 2:.4f} 0.0"
+        )
+
+    labels = [line(f, 0.0) + "\n" for f in range(7)]
+    results = [line(f, 0.1) + " 0.17\n" for f in range(7)]
+    for name, text in (("label_02", labels), ("results", results)):
+        (root / name).mkdir(parents=True)
+        (root / name / "0000.txt").write_text("".join(text))
+    (root / SEQMAP).write_text("0000 empty 000000 000007\n")
+    return root
+
+
 def _stand_ins() -> None:
     def jit(*args, **kwargs):
         if len(args) == 1 and callable(args[0]) and not kwargs:
@@ -277,6 +299,7 @@ def main(argv=None) -> int:
         script = load_script(checkout)
         roots = extract_sets(tmp / "sets_read")
         roots["clean_3d"] = clean_3d_set(tmp / "clean_3d")
+        roots["score_drift"] = score_drift_set(tmp / "score_drift")
         for name, root in roots.items():
             figures[name] = run_set(script, root, tmp / "run" / name)
             print(f"{name}: {json.dumps(figures[name])}", flush=True)

@@ -3,7 +3,8 @@
 tests/data/tracking/ab3dmot_figures.json holds the figures of xinshuoweng/AB3DMOT's
 ``scripts/KITTI/evaluate.py`` (run by benchmarks/ab3dmot_oracle.py) on the sets of
 tests/data/tracking/ab3dmot_sets.tar.xz: two generated clip sets tracked by the 3D tracker,
-a set with Vans, sitting persons and DontCare regions, and tracking_cases.clean_3d_lines.
+a set with Vans, sitting persons and DontCare regions, tracking_cases.clean_3d_lines and a
+case of the script's floating-point drift of track scores.
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ FIGURES = json.loads((REPO / "tests/data/tracking/ab3dmot_figures.json").read_te
 sys.path.insert(0, str(REPO / "benchmarks"))
 import ab3dmot_oracle  # noqa: E402  (the sets' archive and the clean case)
 
-CASES = [(name, iou, cls) for name in ab3dmot_oracle.SETS + ("clean_3d",) for iou, by_class in
-         FIGURES[name].items() for cls in by_class]  # fmt: skip
+CASES = [(name, iou, cls) for name in (*ab3dmot_oracle.SETS, "clean_3d", "score_drift")
+         for iou, by_class in FIGURES[name].items() for cls in by_class]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -32,6 +33,7 @@ def sets(tmp_path_factory):
     root = tmp_path_factory.mktemp("ab3dmot_sets")
     roots = ab3dmot_oracle.extract_sets(root / "sets")
     roots["clean_3d"] = ab3dmot_oracle.clean_3d_set(root / "clean_3d")
+    roots["score_drift"] = ab3dmot_oracle.score_drift_set(root / "score_drift")
     return {name: load_tracking_folders(r / "label_02", r / "results") for name, r in roots.items()}
 
 
@@ -86,3 +88,17 @@ def test_a_switch_across_a_miss_is_not_counted(tmp_path):
     ab = ab3dmot_metrics(seqs, "car", 0.5)
     assert ab["MOTA"] == pytest.approx(0.75) and ab["threshold"] == pytest.approx(0.8)
     assert mot3d_metrics(seqs, "car", 0.5)["MOTA"] == pytest.approx(0.5)
+
+
+def test_the_score_drift_drops_a_track_at_its_own_score(sets):
+    """One track of score 0.17 on a car over 7 frames: its mean 0.16999999999999998 is every
+    threshold; the script takes the mean of the means again, 0.16999999999999996, and drops
+    the track at every threshold: sAMOTA 0 (the fixture's figure from the script itself);
+    the means taken once keep it: every sMOTA is 1."""
+    script = ab3dmot_metrics(sets["score_drift"], "car", 0.5)
+    assert script["sAMOTA"] == pytest.approx(0.0, abs=1e-12) and script["AMOTA"] == 0.0
+    assert script["MOTA"] == 1.0 and script["threshold"] is None  # no threshold beats 0
+    once = ab3dmot_metrics(sets["score_drift"], "car", 0.5, score_drift=False)
+    assert once["thresholds"] == script["thresholds"] > 0
+    assert once["sAMOTA"] == pytest.approx(once["thresholds"] / 40)
+    assert mot3d_metrics(sets["score_drift"], "car", 0.5)["sAMOTA"] == once["sAMOTA"]

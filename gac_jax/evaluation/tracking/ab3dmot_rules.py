@@ -143,7 +143,7 @@ def _prepare(seq, cls: str, iou_threshold: float) -> _Sequence:
     )
 
 
-COUNTS = ("TP", "FN", "FP", "IDSW", "N", "IoU_sum")
+COUNTS = ("TP", "FN", "FP", "IDSW", "N", "IoU_sum", "TP_scored")
 
 
 def _track_means(s: _Sequence) -> None:
@@ -158,10 +158,12 @@ def _track_means(s: _Sequence) -> None:
     s.tr_score = (sums / (s.track_rows >= 0).sum(axis=1))[s.tr_track]
 
 
-def _pass(s: _Sequence, threshold: float, marked: np.ndarray) -> tuple[dict, np.ndarray]:
-    """The counts of one pass at score ``threshold``; ``marked`` (T,): boxes matched in an
-    earlier pass, updated in place. Returns (counts, the TPs' track scores)."""
-    _track_means(s)
+def _pass(s: _Sequence, threshold: float, marked: np.ndarray, means: bool):
+    """The counts of one pass at score ``threshold`` (``means``: take the tracks' means again
+    first); ``marked`` (T,): boxes matched in an earlier pass, updated in place. Returns
+    (counts, the TPs' track scores, which of them are on scored ground truth)."""
+    if means:
+        _track_means(s)
     keep = ~(s.tr_score < threshold)
     # the most pairs first, then the largest IoU sum (rule 3)
     weight = np.where(keep[s.pair_tr], s.weight_scale + s.pair_iou, 0.0)
@@ -186,19 +188,21 @@ def _pass(s: _Sequence, threshold: float, marked: np.ndarray) -> tuple[dict, np.
         "IDSW": int(switch.sum()),
         "N": int((~s.gt_ignored).sum()),
         "IoU_sum": float(s.pair_iou[matched].sum()),
+        "TP_scored": int((~s.gt_ignored[m_gt]).sum()),
     }
-    return counts, s.tr_score[m_tr]
+    return counts, s.tr_score[m_tr], ~s.gt_ignored[m_gt]
 
 
-def _run_pass(seqs, marks, threshold: float):
+def _run_pass(seqs, marks, threshold: float, means: bool = True):
     total = dict.fromkeys(COUNTS, 0)
-    scores = []
+    scores, scored = [np.zeros(0)], [np.zeros(0, bool)]
     for s, marked in zip(seqs, marks, strict=True):
-        counts, tp_scores = _pass(s, threshold, marked)
+        counts, tp_scores, on_scored = _pass(s, threshold, marked, means)
         scores.append(tp_scores)
+        scored.append(on_scored)
         for k in COUNTS:
             total[k] += counts[k]
-    return total, np.concatenate(scores) if scores else np.zeros(0)
+    return total, np.concatenate(scores), np.concatenate(scored)
 
 
 def _figures(c: dict, recall: float = 1.0) -> tuple[float, float, float]:
@@ -209,9 +213,16 @@ def _figures(c: dict, recall: float = 1.0) -> tuple[float, float, float]:
     return 1.0 - errors / c["N"], motp, min(1.0, max(0.0, smota))
 
 
-def ab3dmot_metrics(sequences, cls: str, iou: float) -> dict:
+def ab3dmot_metrics(
+    sequences, cls: str, iou: float, *, score_drift: bool = True, scored_recall: bool = False
+) -> dict:
     """AB3DMOT's script's figures (module docstring) for ``cls`` (``"car"``, ``"pedestrian"``
     or ``"cyclist"``) at 3D IoU ``iou`` over :class:`TrackingSequence` s.
+
+    Two departures from the script, to measure what its rules cost
+    (benchmarks/mot3d_rule_gap.py): ``score_drift=False`` takes the tracks' mean scores once
+    (rule 2); ``scored_recall=True`` takes the thresholds over the true positives on scored
+    ground truth only, as TrackEval's counting does (rule 6).
 
     Returns:
       ``{sAMOTA, AMOTA, AMOTP, MOTA, MOTP, thresholds, threshold}``: MOTA and MOTP of the pass
@@ -220,23 +231,26 @@ def ab3dmot_metrics(sequences, cls: str, iou: float) -> dict:
     """
     seqs = [_prepare(s, cls, iou) for s in sequences]
     marks = [np.zeros(s.tr_id.size, bool) for s in seqs]
-    first, scores = _run_pass(seqs, marks, ALL_TRACKS)
+    first, scores, scored = _run_pass(seqs, marks, ALL_TRACKS)
     if first["N"] == 0:  # no ground truth to score (the script's MOTA would be -inf)
         keys = ("sAMOTA", "AMOTA", "AMOTP", "MOTA", "MOTP", "threshold")
         return {**dict.fromkeys(keys), "thresholds": 0}
+    if scored_recall:
+        scores, first["TP"] = scores[scored], first["TP_scored"]
     thresholds = get_thresholds(scores, first["TP"] + first["FN"])[1:]
     sums = {"sMOTA": 0.0, "MOTA": 0.0, "MOTP": 0.0}
     best_mota, best = 0.0, ALL_TRACKS
     recall = 0.0
     for threshold in thresholds:
         recall += 1.0 / RECALL_STEPS  # accumulated as the devkit does
-        mota, motp, smota = _figures(_run_pass(seqs, marks, float(threshold))[0], recall)
+        counts = _run_pass(seqs, marks, float(threshold), score_drift)[0]
+        mota, motp, smota = _figures(counts, recall)
         sums["sMOTA"] += smota
         sums["MOTA"] += mota
         sums["MOTP"] += motp
         if mota > best_mota:
             best_mota, best = mota, float(threshold)
-    mota, motp, _ = _figures(_run_pass(seqs, marks, best)[0])
+    mota, motp, _ = _figures(_run_pass(seqs, marks, best, score_drift)[0])
     return {
         "sAMOTA": sums["sMOTA"] / RECALL_STEPS,
         "AMOTA": sums["MOTA"] / RECALL_STEPS,
