@@ -1,19 +1,24 @@
 """The CPU's achievable multiply-accumulate rate through OpenVINO, measured per precision.
 
     python benchmarks/bench_peak.py [--precisions f32,bf16,int8] [--rounds 7] [--seconds 1]
-        [--channels 1024] [--size 32] [--layers 8] [--threads N] [--json OUT]
+        [--channels 1024] [--size 16] [--layers 4] [--kernel 3] [--threads N] [--json OUT]
 
-The peak graph: ``--layers`` 1x1 convolutions of ``--channels`` to as many channels on a
-``--size`` x ``--size`` map, each followed by a ReLU (fused into it), one image. Its MACs
-leave no doubt: ``layers * size^2 * channels^2`` (8.59 GMAC by default;
-:func:`gac_jax.deploy.graph_macs.count_macs` of the graph equals this hand count,
-tests/test_bench_peak.py). It is compiled as ``bench_stream.py``'s networks are
-(:func:`gac_jax.deploy.runtimes.openvino_config`: ``f32``, ``bf16`` inference precision;
-``int8``: the NNCF-quantized graph of :func:`gac_jax.deploy.int8.quantize_model`, its other ops
-in float32; one call in flight on every core), and what OpenVINO runs for each convolution
-(its primitive from the compiled model's runtime graph) is printed. The default shape is the
-fastest of those tried on a 2-core AMD EPYC (Zen 4): 1024 channels on 32x32 (and 2048 on
-16x16) ran within 2 % of each other, 256 on 64x64 15-25 % slower.
+The peak graph: ``--layers`` convolutions of ``--kernel`` x ``--kernel`` (stride 1, same
+padding) from ``--channels`` to as many channels on a ``--size`` x ``--size`` map, each
+followed by a ReLU (fused into it), one image. Its MACs leave no doubt: ``layers * size^2 *
+channels^2 * kernel^2`` (9.66 GMAC by default; :func:`gac_jax.deploy.graph_macs.count_macs` of
+the graph equals this hand count, tests/test_bench_peak.py), and OpenVINO runs each
+convolution as the direct kernel its runtime graph names (``brgconv_avx512_I8``, ...): a
+Winograd primitive, which multiplies less, is refused. It is compiled as ``bench_stream.py``'s
+networks are (:func:`gac_jax.deploy.runtimes.openvino_config`: ``f32``, ``bf16`` inference
+precision; ``int8``: the NNCF-quantized graph of :func:`gac_jax.deploy.int8.quantize_model`,
+its other ops in float32; one call in flight on every core).
+
+Why 3x3 convolutions by default: on a 2-core AMD EPYC (Zen 4) they ran 5-20 % faster per
+core than 1x1 convolutions (``--kernel 1``: 1024 channels on 32x32, the fastest 1x1 shape
+tried) and large MatMuls, so that a peak of 1x1 convolutions was beaten by the paper
+detector's own (3x3) convolutions; among the 3x3 shapes tried (256-1024 channels, 16x16 to
+64x64) this one was the fastest, within 5 %.
 
 Per round: calls one after another for ``--seconds``; MAC/s over the wall clock (every core,
 whatever clock they boost to) and MACs per busy core-second (the process's CPU time: on a
@@ -39,25 +44,29 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 PRECISIONS = ("f32", "bf16", "int8")
-DEFAULT_SHAPE = {"channels": 1024, "size": 32, "layers": 8}
+DEFAULT_SHAPE = {"channels": 1024, "size": 16, "layers": 4, "kernel": 3}
 
 
-def hand_count(channels: int, size: int, layers: int) -> int:
-    """MACs of the peak graph: each layer, every output pixel and channel, sums ``channels``
-    products."""
-    return layers * size * size * channels * channels
+def hand_count(channels: int, size: int, layers: int, kernel: int = 1) -> int:
+    """MACs of the peak graph: each layer, every output pixel and channel, sums ``channels *
+    kernel^2`` products."""
+    return layers * size * size * channels * channels * kernel * kernel
 
 
-def peak_graph(channels: int, size: int, layers: int, seed: int = 0):
+def peak_graph(channels: int, size: int, layers: int, kernel: int = 1, seed: int = 0):
     """The peak graph as an ONNX ``ModelProto`` (input ``x`` (1, channels, size, size))."""
     from onnx import TensorProto, helper, numpy_helper
 
     rng = np.random.default_rng(seed)
     nodes, weights, x = [], [], "x"
     for i in range(layers):  # He-scaled weights: activations keep their size through the chain
-        w = rng.normal(0, np.sqrt(2.0 / channels), (channels, channels, 1, 1)).astype(np.float32)
+        shape = (channels, channels, kernel, kernel)
+        w = rng.normal(0, np.sqrt(2.0 / channels / kernel**2), shape).astype(np.float32)
         weights.append(numpy_helper.from_array(w, f"w{i}"))
-        nodes.append(helper.make_node("Conv", [x, f"w{i}"], [f"conv{i}"], name=f"conv{i}"))
+        pads = [kernel // 2] * 4
+        nodes.append(
+            helper.make_node("Conv", [x, f"w{i}"], [f"conv{i}"], name=f"conv{i}", pads=pads)
+        )
         nodes.append(helper.make_node("Relu", [f"conv{i}"], [f"relu{i}"], name=f"relu{i}"))
         x = f"relu{i}"
     shape = [1, channels, size, size]
@@ -118,6 +127,12 @@ def measure_peak(
     macs = hand_count(**shape)
     with tempfile.TemporaryDirectory(prefix="bench_peak_") as tmp:
         compiled, feed = _compile(peak_graph(**shape), precision, threads, Path(tmp))
+    primitives = executed_primitives(compiled)
+    if any("wino" in p.lower() for p in primitives):
+        raise ValueError(
+            f"OpenVINO runs the peak graph's convolutions as {primitives}: Winograd multiplies "
+            "less than the graph counts; choose another --kernel or shape"
+        )
     request = compiled.create_infer_request()
     request.infer(feed)  # warm-up
     wall, core, loads = [], [], []
@@ -148,7 +163,7 @@ def measure_peak(
         "shape": shape,
         "macs": macs,
         "threads": threads,
-        "primitives": executed_primitives(compiled),
+        "primitives": primitives,
         "wall_macs_per_s": stats(wall),
         "core_macs_per_s": stats(core),
         "loads": loads,
@@ -197,6 +212,7 @@ def main(argv=None) -> int:
     p.add_argument("--channels", type=int, default=DEFAULT_SHAPE["channels"])
     p.add_argument("--size", type=int, default=DEFAULT_SHAPE["size"])
     p.add_argument("--layers", type=int, default=DEFAULT_SHAPE["layers"])
+    p.add_argument("--kernel", type=int, default=DEFAULT_SHAPE["kernel"], help="1 or 3")
     p.add_argument("--threads", type=int, help="default: every usable core")
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
@@ -205,8 +221,10 @@ def main(argv=None) -> int:
     info = describe_machine("openvino", "nncf")
     print(one_line(info))
     shape = {"channels": args.channels, "size": args.size, "layers": args.layers}
+    shape["kernel"] = args.kernel
+    k = args.kernel
     print(
-        f"peak graph: {args.layers} x 1x1 conv {args.channels}->{args.channels} on "
+        f"peak graph: {args.layers} x {k}x{k} conv {args.channels}->{args.channels} on "
         f"{args.size}x{args.size}: {hand_count(**shape) / 1e9:.3f} GMAC per call"
     )
     peaks = {}

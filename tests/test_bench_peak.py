@@ -21,15 +21,22 @@ import core_accounting  # noqa: E402
 
 
 @pytest.mark.parametrize(
-    ("channels", "size", "layers"), [(8, 4, 3), tuple(bench_peak.DEFAULT_SHAPE.values())]
+    ("channels", "size", "layers", "kernel"),
+    [(8, 4, 3, 1), (8, 5, 2, 3), tuple(bench_peak.DEFAULT_SHAPE.values())],
 )
-def test_peak_graph_macs_equal_the_hand_count(channels, size, layers):
-    model = bench_peak.peak_graph(channels, size, layers)
-    # each layer: size x size outputs x channels outputs, each a sum of channels products
-    by_hand = layers * (size * size) * channels * channels
-    assert bench_peak.hand_count(channels, size, layers) == by_hand
+def test_peak_graph_macs_equal_the_hand_count(channels, size, layers, kernel):
+    model = bench_peak.peak_graph(channels, size, layers, kernel)
+    # each layer: size x size outputs (same padding) x channels outputs, each a sum of
+    # channels x kernel x kernel products
+    by_hand = layers * (size * size) * channels * (channels * kernel * kernel)
+    assert bench_peak.hand_count(channels, size, layers, kernel) == by_hand
     assert count_macs(model) == {"Conv": by_hand, "total": by_hand}
     assert sum(node.op_type == "Conv" for node in model.graph.node) == layers
+
+
+def test_the_default_graph_is_9_66_gmac():
+    assert bench_peak.hand_count(**bench_peak.DEFAULT_SHAPE) == 4 * 16 * 16 * 1024 * 1024 * 9
+    assert 4 * 16 * 16 * 1024 * 1024 * 9 == 9_663_676_416
 
 
 def _peak(median, lo, hi):
