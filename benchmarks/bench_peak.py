@@ -14,11 +14,11 @@ networks are (:func:`gac_jax.deploy.runtimes.openvino_config`: ``f32``, ``bf16``
 precision; ``int8``: the NNCF-quantized graph of :func:`gac_jax.deploy.int8.quantize_model`,
 its other ops in float32; one call in flight on every core).
 
-Why 3x3 convolutions by default: on a 2-core AMD EPYC (Zen 4) they ran 5-20 % faster per
-core than 1x1 convolutions (``--kernel 1``: 1024 channels on 32x32, the fastest 1x1 shape
-tried) and large MatMuls, so that a peak of 1x1 convolutions was beaten by the paper
-detector's own (3x3) convolutions; among the 3x3 shapes tried (256-1024 channels, 16x16 to
-64x64) this one was the fastest, within 5 %.
+Why 3x3 convolutions by default: on a 2-core AMD EPYC (Zen 4) they ran faster per core than
+1x1 convolutions (``--kernel 1``: 1024 channels on 32x32 the fastest 1x1 shape tried) and
+large MatMuls, and a peak of 1x1 convolutions was beaten by the paper detector's own, mostly
+3x3, convolutions on a loaded machine; among the 3x3 shapes tried (256-1024 channels, 16x16
+to 64x64) this one was the fastest, within 5 %.
 
 Per round: calls one after another for ``--seconds``; MAC/s over the wall clock (every core,
 whatever clock they boost to) and MACs per busy core-second (the process's CPU time: on a
