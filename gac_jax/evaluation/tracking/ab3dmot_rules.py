@@ -37,8 +37,10 @@ does. For one class at a 3D IoU threshold, per sequence:
    ``AMOTP = Σ MOTP_r / 40``. MOTA is the script's "best results with a single threshold":
    a last pass at the threshold of the highest MOTA (every track if none is above 0).
 
-Counts are summed over the sequences. One departure: a line without a 3D box (dimensions or
-location unset) has IoU 0 here, where the script computes an IoU of the unset numbers.
+Counts are summed over the sequences. Two departures: a line without a 3D box (dimensions or
+location unset) has IoU 0 here, where the script computes an IoU of the unset numbers; a
+ground-truth track id twice in one frame is refused (as by the other rule), where the script
+reads it (it refuses such result lines only).
 """
 
 from __future__ import annotations
