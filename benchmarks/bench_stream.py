@@ -23,7 +23,8 @@ wall-clock figures), plus the machine and its load. Export, int8 calibration and
         [--paper-frames 20] [--rounds 2] [--only 'jax f32,openvino int8'] [--batch-size 1]
         [--threads N] [--workdir W] [--live FPS] [--json OUT] [--requests 1,2]
         [--no-video] [--video-scale S] [--container mp4|avi] [--net-frames N] [--profile]
-        [--clock-ghz G] [--track] [--codec h264|mjpeg] [--mcap [--mcap-profile ros2]]
+        [--peak-rounds 5] [--peak-seconds 1] [--track] [--codec h264|mjpeg]
+        [--mcap [--mcap-profile ros2]]
 
 Core accounting per row: each stage's CPU time per frame (its thread's), the XLA threads'
 (decoding; the jax runtime's network), the rest (the ONNX Runtime / OpenVINO inference
@@ -36,15 +37,15 @@ varied by 10-15 % between runs on a 2-core VM), and the bound the host stages se
 network alone keeps every core busy (N core-ms per frame), a stream whose host stages take H
 core-ms per frame reaches at most N / (N + H) of the network-alone rate.
 Per config a summary: the network's MACs (counted from the exported ONNX graph,
-:mod:`gac_jax.deploy.graph_macs`), its achieved MAC/s and the share of the CPU's peak for
-that precision (an estimate from the instruction set and clock: benchmarks/core_accounting.py);
-``--profile``: OpenVINO's per-layer performance counters summed per layer type and executed
-precision. The achieved rate is also given per core-second the network ran (the network
-alone's process CPU time), which the load of a shared machine leaves alone; a share above
-100 % means the cores ran above the clock assumed (a VM shows its nominal clock; give the
-boost clock with ``--clock-ghz``) or the runtime multiplied less than the graph counts
-(OpenVINO's float32 Winograd convolutions). The stream runs with the CLI's thread budget
-(:mod:`gac_jax.streams.thread_budget`);
+:mod:`gac_jax.deploy.graph_macs`), its MAC rate alone (over the wall clock, and per busy
+core-second, which a shared machine's load leaves alone) and their shares of this machine's
+*measured* peak for that precision (``benchmarks/bench_peak.py``, run first for each OpenVINO
+precision of the run: ``--peak-rounds`` of ``--peak-seconds``, medians; jax and ONNX Runtime
+rows against OpenVINO's float32 peak). Every OpenVINO row prints the primitive each
+convolution ran as (the compiled model's runtime graph): a Winograd convolution, which
+multiplies less than the graph counts, would show there, and a share above 100 % says why on
+its line. ``--profile``: OpenVINO's per-layer counters per layer type and executed precision.
+The stream runs with the CLI's thread budget (:mod:`gac_jax.streams.thread_budget`);
 ``--requests 1,2`` times each ONNX Runtime / OpenVINO row with that many network calls in
 flight (``--network-requests``); ``--no-video``, ``--video-scale S`` and ``--container avi``
 (OpenCV's Motion JPEG instead of the MP4), ``--codec`` and ``--mcap`` (an MCAP recording of
@@ -67,7 +68,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from core_accounting import ThreadCpu, cpu_info, exported_onnx, mac_summary, profile
+from bench_peak import measure_peaks
+from core_accounting import ThreadCpu, cpu_info, exported_onnx, mac_summary, primitives, profile
 from machine_info import describe_machine, one_line  # benchmarks/ is on sys.path
 from random_weights import random_variables, timing_detector_config
 
@@ -358,6 +360,10 @@ def print_row(label: str, row: dict) -> None:
         f"N / (N + H) = {net / (net + host):.0%} of its rate",
         flush=True,
     )
+    if "primitives" in row:
+        prims = ", ".join(f"{p} x{k}" for p, k in row["primitives"].items())
+        wino = any("wino" in p.lower() for p in row["primitives"])
+        print(f"    convolutions run as {prims}{'' if wino else ' (no Winograd)'}", flush=True)
     if "live" in row:
         live = row["live"]
         print(
@@ -434,11 +440,8 @@ def main() -> None:
         "--net-frames", type=int, default=30, help="frames of the network alone, per round"
     )
     p.add_argument("--profile", action="store_true", help="OpenVINO per-layer counters")
-    p.add_argument(
-        "--clock-ghz",
-        type=float,
-        help="the cores' clock for the peak (default: /proc/cpuinfo's, a VM's nominal clock)",
-    )
+    p.add_argument("--peak-rounds", type=int, default=5, help="rounds of the peak graph")
+    p.add_argument("--peak-seconds", type=float, default=1.0, help="per peak round")
     args = p.parse_args()
     args.decode_threads = args.decode_threads or None
 
@@ -462,6 +465,9 @@ def main() -> None:
     names = [n for n in args.configs.split(",") if n]
     if args.workdir is not None:
         names.append("trained")
+    # the peak of each OpenVINO precision of the run (float32 for the jax and ONNX Runtime rows)
+    wanted = {precision if runtime == "openvino" else "f32" for runtime, precision in combos}
+    peaks = measure_peaks(wanted, budget.network_threads, args.peak_rounds, args.peak_seconds)
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_stream_") as tmp:
         tmp = Path(tmp)
@@ -499,6 +505,8 @@ def main() -> None:
                     out = tmp / f"out_{name}_{label}"
                     row.update(measure(detector, video, calib, out, args))
                     row["setup_s"] = time.perf_counter() - t0 - row.pop("wall_s")
+                    if (prims := primitives(detector)) is not None:
+                        row["primitives"] = prims
                     rows.append(row)
                     print_row(label, row)
                     if macs is None and (onnx := exported_onnx(detector)) is not None:
@@ -511,11 +519,11 @@ def main() -> None:
                 f"  fastest: {best['label']} {best['fps_median']:.1f} frames/s end to end "
                 f"({best['stream_over_network']:.0%} of its network alone)"
             )
-            mac_summary(rows, name, macs, args.clock_ghz)
+            mac_summary(rows, name, macs, peaks)
     info["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
     print(f"\nload average (1 min) at the end: {info['load_avg_1min_end']}")
     if args.json:
-        result = {"machine": info, "cpu_flags": flags, "rows": rows}
+        result = {"machine": info, "cpu_flags": flags, "peaks": peaks, "rows": rows}
         args.json.write_text(json.dumps(result, default=str))
 
 

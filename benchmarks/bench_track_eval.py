@@ -5,7 +5,8 @@ Pedestrian, Person, Cyclist, DontCare) moving in 3D in front of a KITTI camera, 
 the image from their projection; results: the ground truth with 2D/3D noise, misses, id
 switches and false positives, with scores. Written to a temporary folder, then read and
 scored as ``evaluate.py --task track`` does (HOTA, CLEAR, IDF1 for Car and Pedestrian; then
-with the 3D MOT block: sAMOTA/AMOTA/AMOTP at 3D IoU 0.25 and 0.5, and the velocity error).
+with the 3D MOT block: sAMOTA/AMOTA/AMOTP at 3D IoU 0.25 and 0.5 by each rule, and the
+velocity error).
 
     python benchmarks/bench_track_eval.py [--sequences 21] [--frames 380] [--repeats 3] [--keep DIR]
 """
@@ -58,7 +59,7 @@ def _project(loc, dims):
 
 
 def generate(root: Path, n_seq: int, n_frames: int, seed: int = 0) -> int:
-    """Writes ``label_02`` and ``results``; returns the number of ground-truth boxes."""
+    """Writes ``label_02``, ``results`` and the seqmap; returns the number of ground-truth boxes."""
     rng = np.random.default_rng(seed)
     (root / "label_02").mkdir(parents=True)
     (root / "results").mkdir()
@@ -105,6 +106,8 @@ def generate(root: Path, n_seq: int, n_frames: int, seed: int = 0) -> int:
         for name, rows in (("label_02", gt), ("results", res)):
             rows.sort(key=lambda r: r[0])
             (root / name / f"{s:04d}.txt").write_text("".join(r[1] for r in rows))
+    seqmap = "".join(f"{s:04d} empty 000000 {n_frames:06d}\n" for s in range(n_seq))
+    (root / "evaluate_tracking.seqmap.training").write_text(seqmap)  # the sequences' lengths
     return total
 
 
@@ -118,18 +121,22 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.keep or tmp)
         n_gt = generate(root, args.sequences, args.frames)
-        times = {"read": [], "2D (HOTA, CLEAR, IDF1)": [], "with 3D MOT + velocity": []}
+        times = {"read": [], "2D (HOTA, CLEAR, IDF1)": []}
+        times |= {f"with 3D MOT ({rule}) + velocity": [] for rule in ("ab3dmot", "trackeval")}
         for _ in range(args.repeats):
             t0 = time.perf_counter()
             seqs = load_tracking_folders(root / "label_02", root / "results")
             t1 = time.perf_counter()
             evaluate_tracking(seqs, with_3d=False)
             t2 = time.perf_counter()
-            result = evaluate_tracking(seqs, with_3d=True)
+            result = evaluate_tracking(seqs, with_3d=True)  # the default rule, AB3DMOT's
             t3 = time.perf_counter()
+            evaluate_tracking(seqs, with_3d=True, mot3d_rule="trackeval")
+            t4 = time.perf_counter()
             times["read"].append(t1 - t0)
             times["2D (HOTA, CLEAR, IDF1)"].append(t2 - t1)
-            times["with 3D MOT + velocity"].append(t3 - t2)
+            times["with 3D MOT (ab3dmot) + velocity"].append(t3 - t2)
+            times["with 3D MOT (trackeval) + velocity"].append(t4 - t3)
         n_res = sum(len(s.results) for s in seqs)
     print(format_tracking_table(result), end="")
     print(
@@ -137,7 +144,7 @@ def main(argv=None) -> int:
         f"{n_res} result lines; median of {args.repeats}:"
     )
     for name, t in times.items():
-        print(f"  {name:<26} {statistics.median(t):7.2f} s")
+        print(f"  {name:<36} {statistics.median(t):7.2f} s")
     print("machine:", one_line(describe_machine("numpy", "scipy")))
     return 0
 

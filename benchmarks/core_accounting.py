@@ -1,11 +1,7 @@
-"""Where a stream's CPU time goes, and the network's share of the CPU's peak.
+"""Where a stream's CPU time goes, and the network's share of the CPU's measured peak.
 
-* :func:`peak_macs_per_s`: the CPU's peak multiply-accumulates per second for a precision,
-  an *estimate* from its instruction set (``/proc/cpuinfo`` flags), vendor and clock
-  (``cpu MHz``, the nominal clock in a VM): MACs per cycle per core times cores times clock.
-  Per core and cycle: AMX (Intel Sapphire Rapids+) 1024 int8 / 512 bf16; AVX-512 VNNI int8
-  128 on Intel (two 512-bit FMA ports), 64 on AMD Zen 4 (512-bit ops on 256-bit units);
-  AVX512_BF16 64 Intel / 32 AMD; float32 FMA 32 (Intel AVX-512) / 16 (AMD Zen 4, AVX2).
+* :func:`share_of_peak`: a MAC rate as a share of a peak measured by
+  ``benchmarks/bench_peak.py`` (its median over rounds), and above 100 % why, in the same text.
 * :class:`ThreadCpu`: CPU seconds of the process's threads between two readings of
   ``/proc/self/task/*/stat``, split into XLA's compute threads (by name) and the rest.
 * :func:`openvino_layer_profile`: OpenVINO's per-layer performance counters (``PERF_COUNT``)
@@ -16,17 +12,6 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-
-# MACs per cycle per core: (precision, ISA) -> (Intel, AMD)
-MACS_PER_CYCLE = {
-    ("int8", "amx"): (1024, 1024),
-    ("bf16", "amx"): (512, 512),
-    ("int8", "avx512_vnni"): (128, 64),
-    ("bf16", "avx512_bf16"): (64, 32),
-    ("f32", "avx512f"): (32, 16),
-    ("int8", "avx2"): (64, 32),  # vpmaddubsw + vpmaddwd, no VNNI
-    ("f32", "avx2"): (16, 16),
-}
 
 
 def cpu_info() -> dict:
@@ -45,28 +30,6 @@ def cpu_info() -> dict:
         "mhz": float(fields.get("cpu MHz", "nan")),
         "cores": cores,
     }
-
-
-def peak_macs_per_s(precision: str, info: dict | None = None) -> tuple[float, str]:
-    """(peak MACs/s, how it was estimated) for ``precision`` ('f32', 'bf16', 'int8') on this
-    CPU: the best instruction set it has for that precision (OpenVINO's CPU plugin uses it)."""
-    info = info or cpu_info()
-    flags, amd = info["flags"], info["vendor"] == "AuthenticAMD"
-    order = {
-        "int8": (("amx", "amx_int8"), ("avx512_vnni", "avx512_vnni"), ("avx2", "avx2")),
-        "bf16": (("amx", "amx_bf16"), ("avx512_bf16", "avx512_bf16")),
-        "f32": (("avx512f", "avx512f"), ("avx2", "avx2")),
-    }[precision]
-    for isa, flag in order:
-        if flag in flags:
-            per_cycle = MACS_PER_CYCLE[(precision, isa)][1 if amd else 0]
-            peak = per_cycle * info["cores"] * info["mhz"] * 1e6
-            how = (
-                f"{precision} {isa}: {per_cycle} MACs/cycle/core x {info['cores']} cores x "
-                f"{info['mhz'] / 1e3:.2f} GHz (estimate)"
-            )
-            return peak, how
-    return float("nan"), f"{precision}: no native instructions"
 
 
 def _thread_ticks() -> dict[int, tuple[str, int]]:
@@ -110,16 +73,12 @@ def openvino_layer_profile(model_path, precision: str, threads: int, feed: dict,
     compiled as the runtime compiles it (latency hint, ``threads``) with ``PERF_COUNT``,
     summed over ``runs`` calls on ``feed``. Returns ``{'by_type': {type: ms}, 'by_precision':
     {precision: ms}, 'total_ms': ms, 'runs': runs}``."""
-    import openvino as ov
+    from gac_jax.deploy.runtimes import openvino_config
+    from gac_jax.deploy.telemetry import import_openvino
 
-    core = ov.Core()
+    core = import_openvino().Core()
     model = core.read_model(str(model_path))
-    config = {
-        "INFERENCE_PRECISION_HINT": "bf16" if precision == "bf16" else "f32",
-        "PERFORMANCE_HINT": "LATENCY",
-        "INFERENCE_NUM_THREADS": str(threads),
-        "PERF_COUNT": "YES",
-    }
+    config = {**openvino_config(precision, threads), "PERF_COUNT": "YES"}
     request = core.compile_model(model, "CPU", config).create_infer_request()
     request.infer(feed)  # warm-up
     by_type: dict[str, float] = {}
@@ -142,31 +101,67 @@ def openvino_layer_profile(model_path, precision: str, threads: int, feed: dict,
     }
 
 
-def mac_summary(rows: list[dict], name: str, macs: dict | None, clock_ghz=None) -> None:
-    """The network's MACs, achieved MAC/s (network alone) and share of the CPU's peak
-    (``clock_ghz``: the clock to assume instead of ``/proc/cpuinfo``'s)."""
+def share_of_peak(value: float, peak: dict, reasons: tuple[str, ...] = ()) -> str:
+    """``value`` (MACs/s) as a share of ``peak`` (``{median, max}`` of a bench_peak.py rate):
+    ``'87 % of 230'`` (GMAC/s); above 100 % the text says why: within the peak's spread over
+    its rounds (the load varied between them), else ``reasons`` (e.g. Winograd convolutions,
+    another runtime), else that the network ran faster than every round of the peak graph."""
+    share = value / peak["median"]
+    text = f"{100 * share:.0f} % of {peak['median'] / 1e9:.3g}"
+    if share <= 1.0:
+        return text
+    if value <= peak["max"]:
+        why = f"within the peak's rounds, up to {peak['max'] / 1e9:.3g}: the load varied"
+    elif reasons:
+        why = "; ".join(reasons)
+    else:
+        why = "faster than every round of the peak graph: not this network's ceiling"
+    return f"{text} (above the median peak: {why})"
+
+
+def mac_summary(rows: list[dict], name: str, macs: dict | None, peaks: dict) -> None:
+    """The network's MACs, its achieved MAC rate (network alone: over the wall clock and per
+    busy core-second) and their shares of the measured peaks (``peaks``: precision ->
+    bench_peak.measure_peak's result; jax and ONNX Runtime rows against OpenVINO's f32)."""
     if not macs:
         return
-    info = cpu_info()
-    if clock_ghz:
-        info["mhz"] = 1e3 * clock_ghz
     print(f"  network: {macs['total'] / 1e9:.2f} GMAC per frame (exported ONNX graph)")
     for row in rows:
         if row["config"] != name:
             continue
         ms = row.get("network_ms", row["infer_ms"])
         achieved = macs["total"] / (ms / 1e3)
-        peak, how = peak_macs_per_s(row["precision"] if row["runtime"] != "jax" else "f32", info)
-        row["macs"], row["achieved_macs_per_s"], row["peak_macs_per_s"] = macs, achieved, peak
-        # per core-second the network's threads ran: what a shared machine's load leaves alone
         per_core = macs["total"] / (row["infer_cpu_ms"] / 1e3)
-        row["macs_per_core_s"] = per_core
-        cores = info["cores"]
+        row["macs"], row["achieved_macs_per_s"], row["macs_per_core_s"] = macs, achieved, per_core
+        precision = row["precision"] if row["runtime"] == "openvino" else "f32"
+        peak = peaks.get(precision)
+        if peak is None:
+            print(f"    {row['label']:24s} {achieved / 1e9:7.1f} GMAC/s (no {precision} peak)")
+            continue
+        reasons = []
+        if row["runtime"] != "openvino":
+            reasons.append(f"{row['runtime']} is not the peak's runtime (OpenVINO f32)")
+        wino = sum(k for p, k in row.get("primitives", {}).items() if "wino" in p.lower())
+        if wino:
+            reasons.append(f"{wino} convolutions ran as Winograd, fewer MACs than counted")
+        wall = share_of_peak(achieved, peak["wall_macs_per_s"], tuple(reasons))
+        core = share_of_peak(per_core, peak["core_macs_per_s"], tuple(reasons))
+        row["share_of_peak"] = achieved / peak["wall_macs_per_s"]["median"]
+        row["share_of_core_peak"] = per_core / peak["core_macs_per_s"]["median"]
         print(
-            f"    {row['label']:24s} {achieved / 1e9:7.1f} GMAC/s = {achieved / peak:6.1%} of "
-            f"{peak / 1e9:.0f} GMAC/s ({how}); per busy core {per_core / 1e9:.1f} GMAC/s = "
-            f"{per_core * cores / peak:.1%} of a core's peak"
+            f"    {row['label']:24s} {achieved / 1e9:7.1f} GMAC/s = {wall} GMAC/s measured "
+            f"({precision} peak); per busy core-second {per_core / 1e9:.1f} GMAC = {core}"
         )
+
+
+def primitives(detector) -> dict[str, int] | None:
+    """``{primitive: count}`` of the convolutions of ``detector``'s OpenVINO network as it
+    runs them (bench_peak.executed_primitives), or None for another runtime."""
+    from bench_peak import executed_primitives
+
+    network = getattr(getattr(detector, "_predict", None), "network", None)
+    compiled = getattr(network, "_compiled", None) if network is not None else None
+    return executed_primitives(compiled) if compiled is not None else None
 
 
 def exported_onnx(detector) -> Path | None:

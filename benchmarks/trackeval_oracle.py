@@ -10,8 +10,9 @@ KITTI tracking evaluation since HOTA). Without it, an installed ``trackeval`` pa
 builtins before importing it (the only change; nothing of it is copied or edited).
 
 Each case of ``tests/tracking_cases.py`` is written to a temporary folder in TrackEval's KITTI
-layout, evaluated for Car and Pedestrian with HOTA, CLEAR (threshold 0.5) and Identity, and
-the combined and per-sequence figures go to the JSON fixture that tests/test_tracking_eval.py reads.
+layout (with the case's seqmap ``evaluate_tracking.seqmap.training``), evaluated for Car and
+Pedestrian with HOTA, CLEAR (threshold 0.5) and Identity, and the combined and per-sequence
+figures go to the JSON fixture that tests/test_tracking_eval.py reads.
 """
 
 from __future__ import annotations
@@ -62,12 +63,10 @@ def oracle_version(trackeval, checkout: str | None) -> str:
 
 def run_case(trackeval, name: str, work: Path) -> dict:
     gt = work / "gt"
-    frames = tracking_cases.write_case(name, gt)
+    frames = tracking_cases.write_case(name, gt)  # with its seqmap, as TrackEval reads it
     trackers = work / "trackers"
     (trackers / "t").mkdir(parents=True)
     (gt / "results").rename(trackers / "t" / "data")
-    seqmap = "".join(f"{seq} empty 000000 {n:06d}\n" for seq, n in frames.items())
-    (gt / "evaluate_tracking.seqmap.training").write_text(seqmap)
     evaluator = trackeval.Evaluator(
         {
             "USE_PARALLEL": False,

@@ -1,9 +1,11 @@
 """KITTI tracking label / result files for the tracking-evaluation tests and the oracle script.
 
-``write_case(name, root)`` writes ``root/label_02/SSSS.txt`` and ``root/results/SSSS.txt``
+``write_case(name, root)`` writes ``root/label_02/SSSS.txt``, ``root/results/SSSS.txt``
 (every labelled sequence has a result file, possibly empty, as the official evaluation
-wants) and returns the number of frames of each sequence. The official figures of every
-case are in ``tests/data/tracking/trackeval_figures.json`` (benchmarks/trackeval_oracle.py).
+wants) and the seqmap ``root/evaluate_tracking.seqmap.training`` (the sequences to score and
+their lengths), and returns the number of frames of each sequence of the seqmap. The official
+figures of every case are in ``tests/data/tracking/trackeval_figures.json``
+(benchmarks/trackeval_oracle.py).
 """
 
 from __future__ import annotations
@@ -194,11 +196,15 @@ def clean_3d_lines(seed: int = 5, n_frames: int = 20) -> tuple[dict, dict]:
     return {"0000": gt}, {"0000": res}
 
 
-CASES = ("hand", "generated_1", "generated_2", "crowded", "overlapping")
+CASES = ("hand", "generated_1", "generated_2", "crowded", "overlapping", "seqmap_subset")
+# a case whose seqmap lists some of its sequences, each 5 frames longer than its lines reach
+SUBSET = {"seqmap_subset": ("generated_1", ("0001", "0003"), 5)}
 
 
 def case_files(name: str) -> tuple[dict, dict]:
     """(labels, results): sequence -> rows, of a named case."""
+    if name in SUBSET:
+        return case_files(SUBSET[name][0])
     if name == "hand":
         return HAND_LABELS, HAND_RESULTS
     if name == "generated_1":
@@ -221,12 +227,15 @@ def case_files(name: str) -> tuple[dict, dict]:
 
 
 def write_case(name: str, root: Path) -> dict[str, int]:
-    """Writes a case under ``root``; returns ``{sequence: number of frames}``."""
+    """Writes a case under ``root``; returns ``{sequence: number of frames}`` of its seqmap."""
     labels, results = case_files(name)
     _write(root / "label_02", labels, with_score=False)
     _write(root / "results", results, with_score=True)
+    listed, extra = (SUBSET[name][1], SUBSET[name][2]) if name in SUBSET else (labels, 0)
     frames = {}
-    for seq in labels:
+    for seq in listed:
         used = [r[0] for r in labels[seq]] + [r[0] for r in results.get(seq, [])]
-        frames[seq] = max(used, default=0) + 1
+        frames[seq] = max(used, default=0) + 1 + extra
+    seqmap = "".join(f"{seq} empty 000000 {n:06d}\n" for seq, n in frames.items())
+    (root / "evaluate_tracking.seqmap.training").write_text(seqmap)
     return frames

@@ -276,14 +276,7 @@ class OnnxNetwork:
                     "plane": [batch_size, 4],
                 }
             )
-        config = {
-            # int8: the quantized ops run in int8, the rest in float32 (not the CPU's bf16 default)
-            "INFERENCE_PRECISION_HINT": "bf16" if precision == "bf16" else "f32",
-            "PERFORMANCE_HINT": "LATENCY" if self.requests == 1 else "THROUGHPUT",
-            "INFERENCE_NUM_THREADS": str(threads),
-        }
-        if self.requests > 1:  # one stream per request in flight, the threads shared out
-            config["NUM_STREAMS"] = str(min(self.requests, threads))
+        config = openvino_config(precision, threads, self.requests)
         self._compiled = core.compile_model(model, "CPU", config)
         self._infer_requests = [self._compiled.create_infer_request() for _ in range(self.requests)]
         self._request = self._infer_requests[0]
@@ -338,6 +331,21 @@ class OnnxNetwork:
             }
 
         return PendingOutputs(result)
+
+
+def openvino_config(precision: str, threads: int, requests: int = 1) -> dict[str, str]:
+    """The CPU plugin's compile settings of a network run at ``precision`` on ``threads``
+    threads with ``requests`` calls in flight (also what benchmarks/bench_peak.py compiles
+    its peak graph with)."""
+    config = {
+        # int8: the quantized ops run in int8, the rest in float32 (not the CPU's bf16 default)
+        "INFERENCE_PRECISION_HINT": "bf16" if precision == "bf16" else "f32",
+        "PERFORMANCE_HINT": "LATENCY" if requests == 1 else "THROUGHPUT",
+        "INFERENCE_NUM_THREADS": str(threads),
+    }
+    if requests > 1:  # one stream per request in flight, the threads shared out
+        config["NUM_STREAMS"] = str(min(requests, threads))
+    return config
 
 
 def _feed(images, P2, plane) -> dict[str, np.ndarray]:

@@ -98,15 +98,26 @@ def _by_frame(rows: TrackRows, mask: np.ndarray) -> np.ndarray:
     return index[np.argsort(rows.frame[index], kind="stable")]
 
 
-def _check_unique(frame, ids, path, what):
+def check_unique(frame, ids, lines, path, what) -> None:
+    """Refuses a track id twice in one frame, naming the line of its second occurrence.
+
+    Args:
+      frame, ids, lines: (n,) frame, track id and file line of each box (any order).
+    """
     if ids.size == 0:
         return
-    key = frame * (int(ids.max()) + 1) + ids
-    uniq, counts = np.unique(key, return_counts=True)
-    if (counts > 1).any():
-        k = int(uniq[np.argmax(counts > 1)])
-        f, i = divmod(k, int(ids.max()) + 1)
-        raise KittiFormatError(path, f"{what} track id {i} appears twice in frame {f}")
+    order = np.lexsort((lines, ids, frame))
+    f, i = frame[order], ids[order]
+    twice = np.flatnonzero((f[1:] == f[:-1]) & (i[1:] == i[:-1]))
+    if twice.size:
+        k = twice[np.argmin(lines[order][twice + 1])]  # the earliest second occurrence
+        first, second = int(lines[order][k]), int(lines[order][k + 1])
+        raise KittiFormatError(
+            path,
+            f"{what} track id {int(i[k])} appears twice in frame {int(f[k])} "
+            f"(also on line {first})",
+            second,
+        )
 
 
 def _relabel(ids: np.ndarray) -> tuple[np.ndarray, int]:
@@ -171,8 +182,8 @@ def prepare_class(
     kept_pair = keep_gt[a] & keep_tr[b]
     gi, ti = gi[keep_gt], ti[keep_tr]
     gt_frame, tr_frame = gt.frame[gi], tr.frame[ti]
-    _check_unique(gt_frame, gt.track_id[gi], label_path, "ground-truth")
-    _check_unique(tr_frame, tr.track_id[ti], result_path, cls)
+    check_unique(gt_frame, gt.track_id[gi], gt.line[gi], label_path, "ground-truth")
+    check_unique(tr_frame, tr.track_id[ti], tr.line[ti], result_path, cls)
     gt_id, n_gt_ids = _relabel(gt.track_id[gi])
     tr_id, n_tr_ids = _relabel(tr.track_id[ti])
     return ClassSequence(

@@ -1,7 +1,9 @@
 """3D MOT metrics of AB3DMOT (Weng et al., IROS 2020) and the velocity error of tracks.
 
-**sAMOTA, AMOTA, AMOTP.** The boxes are matched by 3D IoU (threshold 0.25 or 0.5) with the
-CLEAR rules of :mod:`.clear` and the benchmark's ignore rules of :mod:`.kitti_rules`. A
+**sAMOTA, AMOTA, AMOTP** with TrackEval's counting (``--mot3d-rule trackeval``; AB3DMOT's own
+script counts otherwise: :mod:`.ab3dmot_rules`). The boxes are matched by 3D IoU (threshold
+0.25 or 0.5) with the CLEAR rules of :mod:`.clear` and the benchmark's ignore rules of
+:mod:`.kitti_rules`. A
 track's score is the mean score of its boxes. A first pass with every track gives the
 scores of the true positives; as in AB3DMOT, the thresholds are the TP scores closest to
 the recalls ``r = 1/40, 2/40, ..., 1`` (the KITTI devkit's ``getThresholds``). At each

@@ -4,10 +4,11 @@ One line per object per frame::
 
     frame track_id type truncated occluded alpha x1 y1 x2 y2 h w l x y z rotation_y [score]
 
-Labels have 17 columns; a result line has 17 or 18 (the score; 1.0 where it is absent, as
-the benchmark takes it). ``truncated`` and ``occluded`` are the tracking benchmark's levels
-(a fraction is cut to its integer part, as the official evaluation reads it). DontCare lines
-carry track id -1; any other line with a negative track id is not an object.
+Labels have 17 columns; the lines of a result file have 17, or all 18 (the score; 1.0 where
+it is absent, as the benchmark takes it). ``truncated`` and ``occluded`` are the tracking
+benchmark's levels (a fraction is cut to its integer part, as the official evaluation reads
+it). DontCare lines carry track id -1; any other line with a negative track id is not an
+object.
 """
 
 from __future__ import annotations
@@ -22,6 +23,10 @@ from gac_jax.data.files import KittiFormatError, read_bytes
 
 LABEL_COLUMNS = 17
 RESULT_COLUMNS = (17, 18)
+COLUMN_NAMES = (
+    "frame", "track id", "type", "truncated", "occluded", "alpha", "x1", "y1", "x2", "y2",
+    "h", "w", "l", "x", "y", "z", "rotation_y", "score",
+)  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +41,7 @@ class TrackRows:
       dimensions: (N, 3) float64 ``h, w, l`` (m); location: (N, 3) float64 bottom-face centre
         in the camera frame (x right, y down, z forward, m); rotation_y: (N,) float64 yaw (rad).
       score: (N,) float64 (1.0 for labels and score-less results).
+      line: (N,) int64 line number of each row in its file (from 1), for messages.
     """
 
     frame: np.ndarray
@@ -48,6 +54,7 @@ class TrackRows:
     location: np.ndarray
     rotation_y: np.ndarray
     score: np.ndarray
+    line: np.ndarray
 
     def __len__(self) -> int:
         return int(self.frame.shape[0])
@@ -65,21 +72,34 @@ class TrackRows:
         return (self.dimensions > 0).all(axis=1) & (self.location > -999.0).all(axis=1)
 
 
-def _bad_line(rows: list[list[str]], linenos: list[int], path, columns: slice) -> None:
+def _first_bad_number(rows: list[list[str]], linenos: list[int], path) -> KittiFormatError:
+    """The error of the first field in file order (line, then column) that is not a finite
+    number, among the numeric columns (all but the class)."""
     for fields, lineno in zip(rows, linenos, strict=True):
-        for value in fields[columns]:
+        for col, value in enumerate(fields):
+            if col == 2:
+                continue
             try:
-                number = float(value)
+                finite = np.isfinite(float(value))
             except ValueError:
-                raise KittiFormatError(path, f"non-numeric value {value!r}", lineno) from None
-            if not np.isfinite(number):
-                raise KittiFormatError(path, f"non-finite value {value!r}", lineno)
+                finite = None
+            if not finite:
+                what = "non-numeric" if finite is None else "non-finite"
+                problem = f"{what} value {value!r} in column {col + 1} ({COLUMN_NAMES[col]})"
+                return KittiFormatError(path, problem, lineno)
+    raise AssertionError("no bad field")  # only called when the conversion failed
 
 
 def parse_tracking_rows(
     text: str, path: str | os.PathLike = "<tracking>", with_score: bool = False
 ) -> TrackRows:
-    """Parses the text of a label (``with_score=False``: 17 columns) or result file."""
+    """Parses the text of a label (``with_score=False``: 17 columns) or result file.
+
+    Every line of a result file has the column count of its first line (17, or 18 with a
+    score), as the official evaluation reads a file: a line that lost or gained a column is
+    refused, not read with shifted fields. Raises :class:`KittiFormatError` naming the line
+    (and the column of a value that is not a finite number).
+    """
     allowed = RESULT_COLUMNS if with_score else (LABEL_COLUMNS,)
     rows, linenos = [], []
     for lineno, raw in enumerate(text.splitlines(), start=1):
@@ -89,21 +109,27 @@ def parse_tracking_rows(
         if len(fields) not in allowed:
             want = " or ".join(str(n) for n in allowed)
             raise KittiFormatError(path, f"expected {want} columns, found {len(fields)}", lineno)
-        if len(fields) == LABEL_COLUMNS:
-            fields.append("1")
+        if rows and len(fields) != len(rows[0]):
+            raise KittiFormatError(
+                path,
+                f"{len(fields)} columns, but line {linenos[0]} has {len(rows[0])} (every line "
+                "of a result file has the same count: 17, or 18 with a score)",
+                lineno,
+            )
         rows.append(fields)
         linenos.append(lineno)
     if not rows:
         return _empty_rows()
+    if len(rows[0]) == LABEL_COLUMNS:
+        for fields in rows:
+            fields.append("1")
     numeric_cols = [0, 1, *range(3, 18)]
     try:
         values = np.array([[f[i] for i in numeric_cols] for f in rows], dtype=np.float64)
     except ValueError:
-        _bad_line(rows, linenos, path, slice(3, None))
-        _bad_line(rows, linenos, path, slice(0, 2))
-        raise
+        raise _first_bad_number(rows, linenos, path) from None
     if not np.isfinite(values).all():
-        _bad_line(rows, linenos, path, slice(0, None))
+        raise _first_bad_number(rows, linenos, path)
     frame, track = values[:, 0], values[:, 1]
     for name, col in (("frame", frame), ("track id", track)):
         bad = np.flatnonzero(col != np.round(col))
@@ -123,14 +149,27 @@ def parse_tracking_rows(
         location=values[:, 12:15].copy(),
         rotation_y=values[:, 15].copy(),
         score=values[:, 16].copy(),
+        line=np.array(linenos, np.int64),
     )
 
 
 def _empty_rows() -> TrackRows:
     i, f = np.zeros(0, np.int64), np.zeros(0, np.float64)
-    return TrackRows(
-        i, i, np.zeros(0, "<U1"), i, i, np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 3)), f, f
-    )
+    box, vec = np.zeros((0, 4)), np.zeros((0, 3))
+    return TrackRows(i, i, np.zeros(0, "<U1"), i, i, box, vec, vec, f, f, i)
+
+
+def check_frames(rows: TrackRows, n_frames: int, path: str | os.PathLike, source: str) -> None:
+    """Refuses a row whose frame is not in ``0 .. n_frames - 1`` (``source``: where the
+    sequence's length comes from, for the message), as the official evaluation does."""
+    bad = np.flatnonzero(rows.frame >= n_frames)
+    if bad.size:
+        k = bad[0]
+        raise KittiFormatError(
+            path,
+            f"frame {int(rows.frame[k])} is beyond the sequence's {n_frames} frames ({source})",
+            int(rows.line[k]),
+        )
 
 
 def read_tracking_file(path: str | os.PathLike, with_score: bool = False) -> TrackRows:
