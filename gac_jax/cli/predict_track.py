@@ -11,12 +11,16 @@ and velocity arrows on the camera and bird's-eye views, and the results are
 ``--jsonl``, ``OUT/tracks.jsonl`` (one JSON object per frame). Ego poses (tracks in the world
 frame, velocities over the ground) come from ``--poses FILE`` (KITTI odometry format, one line
 per frame) or, for a sequence in the KITTI tracking layout (``--clip`` too), its
-``poses/SSSS.txt``; their count must equal the stream's frames.
+``poses/SSSS.txt``. They are checked against the frames actually read (a video's header does not
+know its frame count for sure): the first frame without a pose stops the stream with one line
+naming the file (a sequence, whose images are counted, is checked before the model loads);
+poses left over at the end are a warning.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from gac_jax.data.files import KittiFormatError
@@ -61,7 +65,8 @@ def sequence_name(source) -> str:
 
 
 def stream_poses(args: argparse.Namespace, source):
-    """(N, 3, 4) poses of the stream's frames, or None (checked: one per frame)."""
+    """``(path, (N, 3, 4) poses)`` of the stream's frames, or None; too few for a sequence's
+    images is refused here, a video's are checked as its frames come."""
     from gac_jax.data.kitti_tracking import KittiTrackingLayout
     from gac_jax.tracking import read_pose_file
 
@@ -74,15 +79,19 @@ def stream_poses(args: argparse.Namespace, source):
         return None
     if not Path(path).is_file():
         raise KittiFormatError(path, "poses file not found")
-    frames = source.expected_frames
-    if frames is None:
-        raise KittiFormatError(path, "the stream's frame count is unknown: poses cannot be checked")
-    return read_pose_file(path, frames)
+    poses = read_pose_file(path)
+    images = getattr(getattr(source, "source", source), "images", None)  # counted, not guessed
+    if images is not None and len(poses) < len(images):
+        raise KittiFormatError(
+            path, f"{len(poses)} poses for {len(images)} frames (one line of 12 numbers per frame)"
+        )
+    return os.fspath(path), poses
 
 
 def tracking_outputs(args: argparse.Namespace, source, plan, detector, poses, fps: float):
     """``(results writer, tracking stage)`` of ``--track`` (``plan``: the stream's checked
-    :class:`~gac_jax.streams.output_plan.OutputPlan`: ``tracks.jsonl`` or ``tracking/``)."""
+    :class:`~gac_jax.streams.output_plan.OutputPlan`: ``tracks.jsonl`` or ``tracking/``;
+    ``poses``: :func:`stream_poses`)."""
     from gac_jax.api.tracker import Tracker3D
     from gac_jax.streams.outputs import JsonlResults
     from gac_jax.streams.tracking import KittiTrackingResults, TrackingStage
@@ -93,4 +102,5 @@ def tracking_outputs(args: argparse.Namespace, source, plan, detector, poses, fp
     else:
         results = KittiTrackingResults(plan.results, sequence_name(source))
     scale = getattr(args, "video_scale", 1.0)
-    return results, TrackingStage(tracker, fps, args.realtime, poses, scale)
+    name, poses = poses if poses is not None else ("poses", None)
+    return results, TrackingStage(tracker, fps, args.realtime, poses, scale, name)

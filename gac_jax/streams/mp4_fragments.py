@@ -123,6 +123,7 @@ class FragmentedJpegMp4:
         self.timescale, self.frame_ticks = frame_timing(fps)
         self.frames = 0
         self._sizes: list[int] = []  # bytes of each frame's fragment
+        self._starts: list[int] = []  # each frame's decode time (ticks)
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
         head, self._mehd_at = header(*size, self.timescale, self.frame_ticks)
         self._end = 0
@@ -142,17 +143,24 @@ class FragmentedJpegMp4:
             raise OSError(e.errno, e.strerror or os.strerror(e.errno), self.path) from None
         self._end += len(data)
 
-    def append(self, jpeg: bytes) -> None:
-        """Adds one JPEG frame (whole, or not at all)."""
-        unit = fragment(self.frames + 1, self.frames * self.frame_ticks, jpeg)
+    def append(self, jpeg: bytes, time_s: float | None = None) -> None:
+        """Adds one JPEG frame (whole, or not at all) shown at ``time_s`` seconds (None, or
+        not after the previous frame: one frame's ticks after it)."""
+        after = self._starts[-1] + self.frame_ticks if self._starts else 0
+        start = after if time_s is None else round(time_s * self.timescale)
+        if self._starts and start <= self._starts[-1]:
+            start = after
+        unit = fragment(self.frames + 1, start, jpeg)
         self._append(unit)
         self._sizes.append(len(unit))
+        self._starts.append(start)
         self.frames += 1
 
     def drop_last(self) -> None:
         """Cuts the last frame off again (its results could not be written)."""
         if self.frames:
             self._end -= self._sizes.pop()
+            self._starts.pop()
             os.ftruncate(self._fd, self._end)
             self.frames -= 1
 
@@ -161,7 +169,8 @@ class FragmentedJpegMp4:
         if self._fd < 0:
             return
         try:
-            duration = struct.pack(">Q", self.frames * self.frame_ticks)
+            end = self._starts[-1] + self.frame_ticks if self._starts else 0
+            duration = struct.pack(">Q", end)
             if os.pwrite(self._fd, duration, self._mehd_at) != len(duration):
                 raise OSError(errno.EIO, os.strerror(errno.EIO))
             os.fsync(self._fd)

@@ -115,9 +115,11 @@ class AnnotatedVideo:
         if not self._writer.isOpened():
             raise KittiFormatError(self.path, f"OpenCV cannot write this video ({w}x{h})")
 
-    def write(self, rgb: np.ndarray) -> None:
-        """Appends one picture (H, W, 3) uint8 RGB; raises ``OSError`` naming the file when
-        it cannot be written (the frames before it stay)."""
+    def write(self, rgb: np.ndarray, time_s: float | None = None) -> None:
+        """Appends one picture (H, W, 3) uint8 RGB shown at ``time_s`` seconds (the frame's
+        own time; None: ``1 / fps`` after the previous; MP4 only, OpenCV's containers play at
+        ``fps``); raises ``OSError`` naming the file when it cannot be written (the frames
+        before it stay)."""
         h, w = rgb.shape[:2]
         if self.size is None:
             self._open(h, w)
@@ -129,7 +131,7 @@ class AnnotatedVideo:
             if not ok:
                 raise ValueError(f"cannot encode a {w}x{h} picture as JPEG")
             try:
-                self._mp4.append(jpeg.tobytes())
+                self._mp4.append(jpeg.tobytes(), time_s)
             except OSError as e:  # named for the user: the video, not its hidden partial
                 raise OSError(e.errno, e.strerror, os.fspath(self.path)) from None
             return
