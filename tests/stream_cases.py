@@ -84,7 +84,9 @@ def damage_avi(path: Path, frames: list[int], seed: int = 0) -> Path:
     rng = np.random.default_rng(seed)
     for i in frames:
         offset, size = chunks[i]
-        data[offset + 100 : offset + size - 100] = rng.integers(0, 256, size - 200, np.uint8)
+        data[offset + 100 : offset + size - 100] = rng.integers(
+            0, 256, size - 200, np.uint8
+        ).tobytes()
     path.write_bytes(bytes(data))
     return path
 
@@ -131,12 +133,12 @@ def small_filesystem(folder: Path, size: str):
         subprocess.run(["umount", "-l", str(folder)], check=False)
 
 
-def no_jax(folder: Path) -> Path:
-    """A folder with a ``jax`` package that raises on import: first on ``PYTHONPATH``, it
-    shows that a command finished before it imported JAX."""
+def no_jax(folder: Path) -> dict[str, str]:
+    """The environment of a subprocess whose ``import jax`` raises (a fake ``jax`` package in
+    ``folder``, first on ``PYTHONPATH``): it shows that a command finished before JAX loads."""
     (folder / "jax").mkdir(parents=True, exist_ok=True)
     (folder / "jax" / "__init__.py").write_text("raise ImportError('JAX was imported')\n")
-    return folder
+    return {"PYTHONPATH": f"{folder}{os.pathsep}{REPO}"}
 
 
 def predict(argv, env=None, prefix=(), **kw) -> subprocess.Popen:
@@ -145,7 +147,8 @@ def predict(argv, env=None, prefix=(), **kw) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(REPO), **(env or {})}
     kw.setdefault("stdout", subprocess.PIPE)
     kw.setdefault("stderr", subprocess.PIPE)
-    command = [*prefix, sys.executable, "-m", "gac_jax.cli.predict", *map(os.fsencode, argv)]
+    argv = [os.fsencode(a if isinstance(a, str | bytes | os.PathLike) else str(a)) for a in argv]
+    command = [*prefix, sys.executable, "-m", "gac_jax.cli.predict", *argv]
     return subprocess.Popen(command, env=env, **kw)
 
 

@@ -304,6 +304,7 @@ def _main(argv: Sequence[str] | None) -> int:
         parser.error(str(e))
     from gac_jax.api.inputs import InputError
     from gac_jax.data.io_errors import error_line, exit_code
+    from gac_jax.streams import output_lock
     from gac_jax.streams.output_lock import OutputBusyError
     from gac_jax.streams.stop_signals import restore_defaults
     from gac_jax.training import workdir_lock
@@ -315,6 +316,7 @@ def _main(argv: Sequence[str] | None) -> int:
     outputs = [args.out] if args.runtime == "jax" or args.export else [args.out, None]
     if streaming and args.out_video:
         outputs.append(args.out_video)
+    start = None
     try:
         with workdir_lock.hold_if_inside(args.workdir, *outputs):
             start = start_stream(args) if streaming else None  # all its checks, before JAX
@@ -322,7 +324,8 @@ def _main(argv: Sequence[str] | None) -> int:
 
             resolve_runtime(args.runtime, args.precision)
             if streaming:
-                return run_stream(args, threads, start)
+                start, begun = None, start
+                return run_stream(args, threads, begun)  # it closes the source
             predict(args, threads)
     except (KittiFormatError, InputError, workdir_lock.WorkdirBusyError, OutputBusyError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -333,6 +336,11 @@ def _main(argv: Sequence[str] | None) -> int:
     except KeyboardInterrupt:  # before a stream's frames (they handle Ctrl-C themselves)
         print("interrupted", file=sys.stderr)
         return 130
+    finally:
+        if start is not None:  # opened and claimed, but the stream did not start
+            start.source.close()
+        if streaming:
+            output_lock.release_all()
     return 0
 
 

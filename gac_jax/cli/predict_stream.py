@@ -256,6 +256,7 @@ def run_stream(args: argparse.Namespace, threads: int, start: StreamStart) -> in
                 stop_signals.exit_now(signals.exit_status or EXIT_INTERRUPTED)
     finally:
         output_lock.release_all()
+        stop_signals.forget_at_exit()
 
 
 def _open_outputs(args, start: StreamStart, source, detector):

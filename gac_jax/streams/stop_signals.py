@@ -46,6 +46,11 @@ def at_exit(callback) -> None:
     _cleanups.append(callback)
 
 
+def forget_at_exit() -> None:
+    """Drops the :func:`at_exit` callbacks (the command ended without ``os._exit``)."""
+    _cleanups.clear()
+
+
 def exit_now(status: int) -> None:
     """The :func:`at_exit` callbacks (newest first), then ``os._exit(status)``."""
     while _cleanups:
