@@ -40,6 +40,16 @@ def write_half_calib(kitti_object_root: Path, path: Path, scale: float = 0.5) ->
     return path
 
 
+def run(argv, capsys) -> tuple[int, str, str]:
+    """``(exit code, stdout, stderr)`` of ``python -m gac_jax.cli.predict ARGV`` in this
+    process."""
+    from gac_jax.cli import predict
+
+    code = predict.main([os.fspath(a) if isinstance(a, os.PathLike) else str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
 def numbered(frames: list[np.ndarray], n: int) -> list[np.ndarray]:
     """``n`` frames cycling through ``frames``, each with its number drawn (all distinct)."""
     out = []

@@ -16,36 +16,18 @@ from pathlib import Path
 import cv2
 import pytest
 
-from gac_jax.cli import predict
 from gac_jax.data.files import write_png
 from gac_jax.streams.output_plan import OutputPlan
 from tests.stream_cases import (
     damage_avi,
-    half_frames,
     no_jax,
     numbered,
     one_line,
+    run,
     small_filesystem,
     write_avi,
-    write_half_calib,
 )
 from tests.stream_cases import predict as predict_process
-
-
-def run(argv, capsys):
-    code = predict.main([os.fspath(a) if isinstance(a, os.PathLike) else str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return code, out, err
-
-
-@pytest.fixture(scope="module")
-def frames(kitti_object_root):
-    return half_frames(kitti_object_root)
-
-
-@pytest.fixture(scope="module")
-def calib(kitti_object_root, tmp_path_factory):
-    return write_half_calib(kitti_object_root, tmp_path_factory.mktemp("calib") / "calib.txt")
 
 
 def snapshot(folder: Path) -> dict[str, bytes]:
@@ -69,7 +51,7 @@ def earlier_run(out: Path) -> dict[str, bytes]:
 
 @pytest.mark.parametrize("ending", ["missing step", "short poses", "no frame", "SIGTERM"])
 def test_overwrite_gives_back_the_earlier_results_when_the_run_fails(
-    tiny_detect3d_workdir, frames, calib, tmp_path, capsys, ending
+    tiny_detect3d_workdir, half_frames, half_calib, tmp_path, capsys, ending
 ):
     """``--overwrite`` over an earlier run's files, in a run that fails before writing a whole
     frame: a checkpoint that does not exist (after loading starts), a pose file shorter than
@@ -78,15 +60,15 @@ def test_overwrite_gives_back_the_earlier_results_when_the_run_fails(
     nothing hidden is left."""
     out = tmp_path / "out"
     before = earlier_run(out)
-    video = write_avi(tmp_path / "drive.avi", numbered(frames, 6))
-    base = ["--workdir", tiny_detect3d_workdir, "--calib", calib, "--out", out, "--overwrite"]
+    video = write_avi(tmp_path / "drive.avi", numbered(half_frames, 6))
+    base = ["--workdir", tiny_detect3d_workdir, "--calib", half_calib, "--out", out, "--overwrite"]
     if ending == "missing step":
         code, _, err = run([*base, "--video", video, "--step", 999], capsys)
         assert code == 2 and "999" in err, err
     elif ending == "short poses":
         folder = tmp_path / "seq"
         for i in range(4):
-            write_png(folder / f"{i:06d}.png", frames[i])
+            write_png(folder / f"{i:06d}.png", half_frames[i])
         (tmp_path / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2)
         argv = [*base, "--sequence", folder, "--track", "--poses", tmp_path / "poses.txt"]
         code, _, err = run(argv, capsys)
@@ -134,14 +116,14 @@ def test_a_set_aside_is_given_back_after_a_kill(tmp_path):
     assert after == {**before, "data/000099.txt": b"the killed run's frame\n"}
 
 
-def test_one_stream_per_output_folder(tiny_detect3d_workdir, frames, calib, tmp_path):
+def test_one_stream_per_output_folder(tiny_detect3d_workdir, half_frames, half_calib, tmp_path):
     """A second stream into a running stream's ``--out`` (with or without ``--overwrite``),
     or onto its ``--out-video`` from another folder, stops before JAX loads with one line
     naming the running stream's pid, exit 2; the running stream's files are untouched and it
     ends normally."""
-    video = write_avi(tmp_path / "long.avi", numbered(frames, 300))
+    video = write_avi(tmp_path / "long.avi", numbered(half_frames, 300))
     out, movie = tmp_path / "out", tmp_path / "movies" / "drive.mp4"
-    base = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", calib]
+    base = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", half_calib]
     first = predict_process(
         [*base, "--out", out, "--out-video", movie, "--report-every", 0], text=True
     )
@@ -172,14 +154,14 @@ def test_one_stream_per_output_folder(tiny_detect3d_workdir, frames, calib, tmp_
 
 
 def test_a_closed_stdout_and_a_full_stderr_change_nothing(
-    tiny_detect3d_workdir, frames, calib, tmp_path
+    tiny_detect3d_workdir, half_frames, half_calib, tmp_path
 ):
     """stdout read for two lines and closed (``| head -2``), stderr on ``/dev/full``, progress
     lines every 50 ms: the stream runs to its end, exit 0, a complete video under its final
     name and every frame's results."""
-    video = write_avi(tmp_path / "drive.avi", numbered(frames, 40))
+    video = write_avi(tmp_path / "drive.avi", numbered(half_frames, 40))
     out = tmp_path / "out"
-    argv = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", calib]
+    argv = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", half_calib]
     with open("/dev/full", "wb") as full:
         process = predict_process([*argv, "--out", out, "--report-every", 0.05], stderr=full)
         head = [process.stdout.readline() for _ in range(2)]
@@ -211,13 +193,13 @@ NUMBERS = {
 
 
 @pytest.mark.parametrize("case", sorted(NUMBERS))
-def test_a_bad_number_is_one_line_before_jax(frames, calib, tmp_path, case):
+def test_a_bad_number_is_one_line_before_jax(half_frames, half_calib, tmp_path, case):
     """Each numeric option out of its range (and the choices argparse checks): one line naming
     it, exit 2, no usage dump, before JAX is imported (it would raise here)."""
     extra, message = NUMBERS[case]
-    video = write_avi(tmp_path / "drive.avi", numbered(frames, 2))
+    video = write_avi(tmp_path / "drive.avi", numbered(half_frames, 2))
     source = [] if "--camera" in extra else ["--video", video]
-    argv = ["--workdir", tmp_path, *source, "--calib", calib, *extra, "--out", tmp_path / "o"]
+    argv = ["--workdir", tmp_path, *source, "--calib", half_calib, *extra, "--out", tmp_path / "o"]
     env = no_jax(tmp_path / "nojax")
     process = predict_process(argv, env=env, text=True)
     stdout, stderr = process.communicate(timeout=120)
@@ -227,14 +209,14 @@ def test_a_bad_number_is_one_line_before_jax(frames, calib, tmp_path, case):
 
 
 @pytest.mark.parametrize("video", [True, False])
-def test_too_little_space_is_refused_before_jax(frames, calib, tmp_path, video):
+def test_too_little_space_is_refused_before_jax(half_frames, half_calib, tmp_path, video):
     """Less free space than 3 s of video (or, with ``--no-video``, than the results need):
     one line naming the folder and what it needs, exit 2, before JAX is imported, and no
     folder left behind."""
-    clip = write_avi(tmp_path / "drive.avi", numbered(frames, 2))
+    clip = write_avi(tmp_path / "drive.avi", numbered(half_frames, 2))
     with small_filesystem(tmp_path / "small", "1m" if video else "256k") as disk:
         out = disk / "out"
-        argv = ["--workdir", tmp_path, "--video", clip, "--calib", calib, "--out", out]
+        argv = ["--workdir", tmp_path, "--video", clip, "--calib", half_calib, "--out", out]
         env = no_jax(tmp_path / "nojax")
         process = predict_process(argv if video else [*argv, "--no-video"], env=env, text=True)
         stdout, stderr = process.communicate(timeout=120)
@@ -245,11 +227,11 @@ def test_too_little_space_is_refused_before_jax(frames, calib, tmp_path, video):
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
-def test_a_signal_in_the_first_moments_is_one_line(frames, calib, tmp_path, signum):
+def test_a_signal_in_the_first_moments_is_one_line(half_frames, half_calib, tmp_path, signum):
     """A stop signal as soon as the command runs its own code (OpenCV loading, the arguments
     parsed): one line, exit 128 + N, no traceback."""
-    video = write_avi(tmp_path / "drive.avi", numbered(frames, 2))
-    argv = ["--workdir", tmp_path, "--video", video, "--calib", calib, "--out", tmp_path / "o"]
+    video = write_avi(tmp_path / "drive.avi", numbered(half_frames, 2))
+    argv = ["--workdir", tmp_path, "--video", video, "--calib", half_calib, "--out", tmp_path / "o"]
     process = predict_process(argv, text=True)
     maps = Path(f"/proc/{process.pid}/maps")
     deadline = time.monotonic() + 60
@@ -280,23 +262,32 @@ MESSAGES = [
 
 @pytest.mark.parametrize("case", MESSAGES)
 def test_each_message_names_the_users_file(
-    tiny_detect3d_workdir, kitti_object_root, frames, calib, tmp_path, capsys, case
+    tiny_detect3d_workdir, kitti_object_root, half_frames, half_calib, tmp_path, capsys, case
 ):
     """One line naming what the user gave, before the model loads: a named pipe as the video,
     the calibration of half the picture's size (its principal point at a quarter of the
     frame), an ``--out`` that is a link to nothing, an ``--out-video`` that exists elsewhere, a
     read-only ``data/`` (not our temporary file in it)."""
-    video = write_avi(tmp_path / "drive.avi", numbered(frames, 2))
+    video = write_avi(tmp_path / "drive.avi", numbered(half_frames, 2))
     out = tmp_path / "out"
-    argv = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", calib, "--out", out]
+    argv = [
+        "--workdir",
+        tiny_detect3d_workdir,
+        "--video",
+        video,
+        "--calib",
+        half_calib,
+        "--out",
+        out,
+    ]
     if case == "FIFO":
         os.mkfifo(tmp_path / "pipe.mp4")
         argv[3] = tmp_path / "pipe.mp4"
         needles = (f"{tmp_path / 'pipe.mp4'}: is a named pipe (FIFO), not a video file",)
     elif case == "half-size calibration":
-        full = [cv2.resize(f, None, fx=2, fy=2) for f in frames[:2]]
+        full = [cv2.resize(f, None, fx=2, fy=2) for f in half_frames[:2]]
         argv[3] = write_avi(tmp_path / "full.avi", full)
-        needles = (f"{calib}: does not fit the 1224x368 frames", "far from the centre")
+        needles = (f"{half_calib}: does not fit the 1224x368 frames", "far from the centre")
     elif case == "dangling --out":
         out.symlink_to(tmp_path / "gone" / "results")
         needles = (f"{out}: is a symbolic link to {tmp_path / 'gone' / 'results'}",)

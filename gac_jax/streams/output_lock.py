@@ -18,14 +18,12 @@ process that opened the old file retries on the new one) and left, harmless, onl
 from __future__ import annotations
 
 import contextlib
-import errno
-import fcntl
 import json
 import os
 from pathlib import Path
 
 from gac_jax.data.io_errors import naming
-from gac_jax.training.workdir_lock import holder_info
+from gac_jax.training.workdir_lock import holder_info, try_lock
 
 FOLDER_LOCK = ".gac_jax_stream.lock"
 
@@ -59,22 +57,21 @@ class OutputLock:
         while True:
             with naming(self.path):
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            holder = error = None
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                holder = try_lock(fd)
             except OSError as e:
-                holder = _read(fd)
-                os.close(fd)
-                if e.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                    raise OutputBusyError(self._busy(holder)) from None
-                raise OSError(
-                    e.errno,
-                    f"cannot lock ({e.strerror}): its filesystem has no file locks, so a "
-                    "second stream into it could not be refused; choose a local folder",
-                    os.fspath(self.path),
-                ) from None
-            if _same_file(fd, self.path):
+                error = e
+            if holder is None and error is None and _same_file(fd, self.path):
                 break
-            os.close(fd)  # its holder removed it as we opened it: lock the new one
+            os.close(fd)
+            if error is not None:
+                why = f"cannot lock ({error.strerror}): its filesystem has no file locks"
+                why += ", so a second stream into it could not be refused; choose a local folder"
+                raise OSError(error.errno, why, os.fspath(self.path))
+            if holder is not None:
+                raise OutputBusyError(self._busy(holder))
+            # else its holder removed the file as we opened it: lock the new one
         try:
             data = (json.dumps(holder_info()) + "\n").encode()
             os.ftruncate(fd, 0)
@@ -109,14 +106,6 @@ def _same_file(fd: int, path: Path) -> bool:
     except OSError:
         return False
     return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
-
-
-def _read(fd: int) -> dict:
-    try:
-        info = json.loads(os.pread(fd, 4096, 0).decode() or "{}")
-    except (OSError, ValueError):
-        return {}
-    return info if isinstance(info, dict) else {}
 
 
 _held: list[OutputLock] = []

@@ -20,6 +20,7 @@ restored if it ends before writing a whole frame).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import os
@@ -158,11 +159,11 @@ def plan_outputs(
 
 
 def _device(path: Path) -> int | None:
-    for candidate in (path, *path.parents):
-        try:
-            return os.stat(candidate).st_dev
-        except OSError:
-            continue
+    """The filesystem ``path`` is (or would be created) on."""
+    while not path.exists() and path.parent != path:
+        path = path.parent
+    with contextlib.suppress(OSError):
+        return os.stat(path).st_dev
     return None
 
 
