@@ -14,7 +14,7 @@ against the frame size); a ``--sequence`` in the KITTI tracking layout
 planes ``ROOT/training/planes/SSSS/<frame>.txt`` by itself; ``--clip N`` runs on generated
 driving clip N (made into the cache on first use, no download). Without a plane the config's
 level camera is used. Writes ``OUT/annotated.mp4`` (camera view with 3D boxes | bird's-eye
-view, at the input's fps) and ``OUT/data/<frame>.txt`` (or ``OUT/detections.jsonl`` with
+view, each frame at its own time) and ``OUT/data/<frame>.txt`` (or ``OUT/detections.jsonl`` with
 ``--jsonl``) as frames finish; prints frames/s and latency every few seconds and at the end.
 Ctrl-C, SIGTERM and SIGHUP stop reading and finish the frames in flight (twice: drop them);
 the video stays playable; exit 130 / 143 / 129 (:mod:`gac_jax.streams.stop_signals`).
