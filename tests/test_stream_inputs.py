@@ -114,16 +114,8 @@ def test_a_variable_frame_rate_video_keeps_its_timing(
 
     monkeypatch.setattr(Tracker3D, "update", recording)
     out = tmp_path / "out"
-    argv = [
-        "--workdir",
-        tiny_detect3d_workdir,
-        "--video",
-        video,
-        "--calib",
-        half_calib,
-        "--out",
-        out,
-    ]
+    argv = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", half_calib]
+    argv += ["--out", out]
     code, stdout, err = run([*argv, "--track", "--poses", poses, "--jsonl"], capsys)
     assert code == 0, err
     assert err.strip() == "", err

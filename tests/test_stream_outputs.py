@@ -270,16 +270,8 @@ def test_each_message_names_the_users_file(
     read-only ``data/`` (not our temporary file in it)."""
     video = write_avi(tmp_path / "drive.avi", numbered(half_frames, 2))
     out = tmp_path / "out"
-    argv = [
-        "--workdir",
-        tiny_detect3d_workdir,
-        "--video",
-        video,
-        "--calib",
-        half_calib,
-        "--out",
-        out,
-    ]
+    argv = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", half_calib]
+    argv += ["--out", out]
     if case == "FIFO":
         os.mkfifo(tmp_path / "pipe.mp4")
         argv[3] = tmp_path / "pipe.mp4"
