@@ -2,13 +2,12 @@
 FFmpeg's own thread count (every core).
 
 The stream's source (``gac_jax.streams.sources.VideoSource``) decodes an MPEG-4 video of the
-KITTI sample frames (1242x375, as ``bench_stream.py`` makes it) to RGB, frame after frame, with
-a stream's OpenCV setting (one thread); each setting is timed in alternation over ``--rounds``
-passes: the process CPU time per frame (the decoder's threads included) and the wall time per
-frame. Reported: medians over rounds,
-and the machine. A stream's read stage runs beside four other stages on the same cores, so
-what counts there is the CPU time: with one thread the decoding costs the CPU it needs, with
-several the threads' hand-offs add to it.
+KITTI sample frames (1242x375, as ``bench_stream.py`` makes it) to RGB through PyAV (FFmpeg's
+decoder and colour conversion), frame after frame; each setting is timed in alternation over
+``--rounds`` passes: the process CPU time per frame (the decoder's threads included) and the
+wall time per frame. Reported: medians over rounds, and the machine. A stream's read stage
+runs beside four other stages on the same cores, so what counts there is the CPU time: with one
+thread the decoding costs the CPU it needs, with several the threads' hand-offs add to it.
 
     python benchmarks/bench_video_decode.py [--frames 120] [--rounds 5] [--json OUT]
 """
@@ -58,7 +57,7 @@ def main() -> None:
     p.add_argument("--json", type=Path)
     args = p.parse_args()
     sources.quiet_video_backend()
-    apply_host_threads(plan_thread_budget())  # OpenCV's colour conversion: one thread, as a stream
+    apply_host_threads(plan_thread_budget())  # OpenCV and BLAS: one thread, as in a stream
     info = describe_machine("cv2")
     print(one_line(info))
     rows = {name: [] for name in SETTINGS}

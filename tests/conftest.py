@@ -165,3 +165,20 @@ def tiny_detect3d_workdir(kitti_object_root: Path, tmp_path_factory) -> Path:
     workdir = tmp_path_factory.mktemp("tiny_detect3d")
     detect3d.train_and_evaluate(config, workdir)
     return workdir
+
+
+@pytest.fixture(scope="session")
+def half_frames(kitti_object_root: Path) -> list:
+    """The vendored KITTI frames cut to 368 x 1224 and halved: a stream test's input
+    (:func:`tests.stream_cases.half_frames`)."""
+    from tests.stream_cases import half_frames
+
+    return half_frames(kitti_object_root)
+
+
+@pytest.fixture(scope="session")
+def half_calib(kitti_object_root: Path, tmp_path_factory) -> Path:
+    """The calibration file of :func:`half_frames` (P2 halved)."""
+    from tests.stream_cases import write_half_calib
+
+    return write_half_calib(kitti_object_root, tmp_path_factory.mktemp("calib") / "calib.txt")

@@ -24,6 +24,8 @@ import pytest
 from gac_jax.data.files import read_image
 from gac_jax.data.kitti import KittiObjects, read_calib, write_calib
 from gac_jax.streams import outputs
+from tests import stream_cases
+from tests.stream_cases import one_line, small_filesystem
 
 SIZE = (370, 1224)  # the smallest vendored frame: the others are cut to it (same P2)
 REPO = Path(__file__).resolve().parents[1]
@@ -90,34 +92,7 @@ def hidden(folder: Path) -> list[str]:
 
 
 def predict(argv, prefix=(), **kw) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    command = [*prefix, sys.executable, "-m", "gac_jax.cli.predict", *map(str, argv)]
-    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=env, **kw)  # fmt: skip
-
-
-def one_line(err: str, *needles: str) -> str:
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
-
-
-@contextlib.contextmanager
-def small_filesystem(folder: Path, size: str):
-    """A tmpfs of ``size`` mounted on ``folder`` (skips where mounting is not permitted)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
-                          capture_output=True, text=True)  # fmt: skip
-    if done.returncode != 0:
-        reason = done.stderr.strip()
-        pytest.skip(f"cannot mount a small tmpfs here ({reason}); the injected ENOSPC tests "
-                    "of the writers still run")  # fmt: skip
-    try:
-        yield folder
-    finally:
-        subprocess.run(["umount", "-l", str(folder)], check=False)
+    return stream_cases.predict(argv, prefix=prefix, text=True, **kw)
 
 
 def test_a_full_disk_keeps_a_playable_prefix_and_the_earlier_video(

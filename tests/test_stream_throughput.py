@@ -36,13 +36,13 @@ def workdir(tiny_detect3d_workdir, tmp_path_factory):
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory):
     """``--clip``: a 1-sequence, 5-frame generated set in a temporary cache."""
-    from gac_jax.cli import predict_stream
+    from gac_jax.cli import stream_start
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("GAC_JAX_CACHE", str(tmp_path_factory.mktemp("cache")))
-        mp.setattr(predict_stream, "CLIP_SEQUENCES", 1)
-        mp.setattr(predict_stream, "CLIP_FRAMES", 5)
-        return predict_stream.clip_sequence(0)
+        mp.setattr(stream_start, "CLIP_SEQUENCES", 1)
+        mp.setattr(stream_start, "CLIP_FRAMES", 5)
+        return stream_start.clip_sequence(0)
 
 
 def stream(workdir, clip, out, capsys, *extra) -> str:

@@ -24,7 +24,10 @@ from gac_jax.data.sources import new_sample
 
 PLANE_NORM_TOLERANCE = 1e-3
 MAX_CONDITION = 1e12  # of P2's left 3x3 block: beyond it, singular in float64
-CENTRE_BAND = 0.6  # the principal point must lie in the middle 60 % of each image axis
+# the principal point must lie in the middle 40 % of each image axis: a camera's is within a few
+# per cent of the centre; the calibration of half (or twice) the picture's size puts it at a
+# quarter of the frame (KITTI's halved: u = 0.25 W, v = 0.23 H), of another camera near an edge
+CENTRE_BAND = 0.4
 
 
 class InputError(ValueError):
@@ -108,10 +111,10 @@ def check_fits(
     """Raises :class:`InputError` if ``P2`` cannot be the projection of an image of
     ``size = (H, W)``: its principal point ``(P2[0, 2], P2[1, 2])`` must lie in the image.
     ``centre_band``: also in its middle :data:`CENTRE_BAND` along each axis, the stream CLI's
-    check of a calibration file (a point near an edge means the calibration of another image
-    size: KITTI's 1242 x 375 one on a 640 x 480 camera puts it at u = 609 of 640; the API
-    does not ask it, a cropped image may have its point near an edge). ``what`` names the
-    image in the message."""
+    check of a calibration file (a point far from the centre means the calibration of another
+    image size: KITTI's 1242 x 375 one on a 640 x 480 camera puts it at u = 609 of 640, its
+    halved one on the full frame at a quarter; the API does not ask it, a cropped image may
+    have its point near an edge). ``what`` names the image in the message."""
     h, w = size
     cu, cv = float(P2[0, 2]), float(P2[1, 2])
     where = f"the {w}x{h} {what}"

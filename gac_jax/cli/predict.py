@@ -38,6 +38,11 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+if __name__ == "__main__":  # a stop signal while the command starts: one line, no traceback
+    from gac_jax.streams.stop_signals import exit_during_start
+
+    exit_during_start()
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 EXIT_INVALID_INPUT = 2
 
@@ -161,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     from gac_jax.cli.predict_stream import add_stream_arguments
     from gac_jax.deploy.int8 import add_int8_arguments
 
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m gac_jax.cli.predict",
         description="Run a trained GAC detector on KITTI-format images; write KITTI result files "
         "and pictures.",
@@ -265,27 +270,41 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     return out
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, ``error: <option>: <problem>`` (exit 2),
+    as every other input error of the command, not a usage dump (``--help`` gives that)."""
+
+    def error(self, message: str):
+        print(f"error: {message}", file=sys.stderr, flush=True)
+        raise SystemExit(EXIT_INVALID_INPUT)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command (module doc); what it prints never stops it (:mod:`gac_jax.cli.console`)."""
+    from gac_jax.cli.console import safe_console
+
+    with safe_console():
+        return _main(argv)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     from gac_jax.cpu_backend import apply_default_xla_flags
 
     apply_default_xla_flags()  # before JAX starts its backend
     parser = build_parser()
     args = parser.parse_args(argv)
-    from gac_jax.cli.predict_stream import check_stream_arguments, run_stream, stream_kind
+    from gac_jax.cli.predict_stream import check_stream_arguments, run_stream
+    from gac_jax.cli.stream_start import numeric_problems, refuse, start_stream, stream_kind
 
     check_stream_arguments(parser, args)
     if args.checkpoint and args.step is not None:
         parser.error("--step selects a checkpoint of the workdir; it cannot go with --checkpoint")
-    if args.batch_size < 1:
-        parser.error("--batch-size must be >= 1")
     if args.export and args.runtime == "jax":
         parser.error("--export only applies with --runtime onnxruntime|openvino")
+    for problem in numeric_problems(args):  # before anything opens, JAX included
+        refuse(problem)
     from gac_jax.cli.model_mode import limit_cpu_threads
     from gac_jax.data.files import KittiFormatError
-    from gac_jax.deploy.runtime_choice import resolve_runtime
-
-    resolve_runtime(args.runtime, args.precision)
-
     from gac_jax.deploy.int8 import int8_settings
 
     try:
@@ -295,19 +314,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(str(e))
     from gac_jax.api.inputs import InputError
     from gac_jax.data.io_errors import error_line, exit_code
+    from gac_jax.streams import output_lock
+    from gac_jax.streams.output_lock import OutputBusyError
+    from gac_jax.streams.stop_signals import restore_defaults
     from gac_jax.training import workdir_lock
 
     streaming = stream_kind(args) is not None
+    if not streaming:
+        restore_defaults()  # Ctrl-C is a KeyboardInterrupt (below)
     # W/predict by default; the runtimes export into W/export
     outputs = [args.out] if args.runtime == "jax" or args.export else [args.out, None]
     if streaming and args.out_video:
         outputs.append(args.out_video)
+    start = None
     try:
         with workdir_lock.hold_if_inside(args.workdir, *outputs):
+            start = start_stream(args) if streaming else None  # all its checks, before JAX
+            from gac_jax.deploy.runtime_choice import resolve_runtime
+
+            resolve_runtime(args.runtime, args.precision)
             if streaming:
-                return run_stream(args, threads)
+                start, begun = None, start
+                return run_stream(args, threads, begun)  # it closes the source
             predict(args, threads)
-    except (KittiFormatError, InputError, workdir_lock.WorkdirBusyError) as e:
+    except (KittiFormatError, InputError, workdir_lock.WorkdirBusyError, OutputBusyError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_INVALID_INPUT
     except OSError as e:
@@ -316,6 +346,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # before a stream's frames (they handle Ctrl-C themselves)
         print("interrupted", file=sys.stderr)
         return 130
+    finally:
+        if start is not None:  # opened and claimed, but the stream did not start
+            start.source.close()
+        if streaming:
+            output_lock.release_all()
     return 0
 
 

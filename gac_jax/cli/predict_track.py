@@ -10,16 +10,20 @@ and velocity arrows on the camera and bird's-eye views, and the results are
 ``SSSS`` the sequence's folder name in the KITTI tracking layout, else ``0000``) or, with
 ``--jsonl``, ``OUT/tracks.jsonl`` (one JSON object per frame). Ego poses (tracks in the world
 frame, velocities over the ground) come from ``--poses FILE`` (KITTI odometry format, one line
-per frame; its count must equal the stream's frames) or else, found by themselves and said
-in a printed line: a KITTI tracking layout sequence's (``--clip`` too) ``poses/SSSS.txt``,
-else its ``oxts/SSSS.txt``; a KITTI raw drive's ``oxts/data/<frame>.txt``. OXTS packets become
-camera poses as the KITTI devkit makes them (:mod:`gac_jax.data.kitti_oxts`), through the
-sequence's calibration.
+per frame) or else, found by themselves and said in a printed line: a KITTI tracking layout
+sequence's (``--clip`` too) ``poses/SSSS.txt``, else its ``oxts/SSSS.txt``; a KITTI raw
+drive's ``oxts/data/<frame>.txt``. OXTS packets become camera poses as the KITTI devkit makes
+them (:mod:`gac_jax.data.kitti_oxts`), through the sequence's calibration. They are checked
+against the frames actually read (a video's header does not know its frame count for sure):
+the first frame without a pose stops the stream with one line naming the file (a sequence,
+whose images are counted, is checked before the model loads); poses left over at the end are
+a warning.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from gac_jax.data.files import KittiFormatError
@@ -65,8 +69,8 @@ def sequence_name(source) -> str:
 
 
 def layout_poses(source) -> tuple | None:
-    """``((N, 3, 4) poses, what they came from)`` of a sequence source's frames found by its
-    layout (module docstring), or None."""
+    """``((N, 3, 4) poses, the file they came from, a line saying so)`` of a sequence source's
+    frames found by its layout (module docstring), or None."""
     from gac_jax.data.kitti_oxts import camera_poses, read_oxts
     from gac_jax.data.kitti_tracking import KittiTrackingLayout
     from gac_jax.tracking import read_pose_file
@@ -79,7 +83,7 @@ def layout_poses(source) -> tuple | None:
         layout, sequence = located
         if layout.poses(sequence).is_file():
             path = layout.poses(sequence)
-            return read_pose_file(path, source.expected_frames), f"poses: {path}"
+            return read_pose_file(path, source.expected_frames), path, f"poses: {path}"
         if layout.oxts(sequence).is_file():
             path = layout.oxts(sequence)
             packets = read_oxts(path)
@@ -90,11 +94,11 @@ def layout_poses(source) -> tuple | None:
                 raise KittiFormatError(
                     path, f"{len(packets)} OXTS packets for frames up to {max(frames)}"
                 )
-            return camera_poses(packets[frames], source.calibration), oxts_line(path)
+            return camera_poses(packets[frames], source.calibration), path, oxts_line(path)
     raw = getattr(getattr(source, "files", None), "raw", None)
     if raw is not None and raw.oxts_dir.is_dir():
         poses = raw.poses([p.stem for p in images], source.calibration)
-        return poses, oxts_line(raw.oxts_dir)
+        return poses, raw.oxts_dir, oxts_line(raw.oxts_dir)
     return None
 
 
@@ -103,29 +107,33 @@ def oxts_line(path) -> str:
 
 
 def stream_poses(args: argparse.Namespace, source, log=print):
-    """(N, 3, 4) poses of the stream's frames, or None (checked: one per frame): ``--poses``,
-    else those the sequence's layout holds (:func:`layout_poses`; ``log`` gets a line saying
-    which)."""
+    """``(path, (N, 3, 4) poses)`` of the stream's frames, or None: ``--poses``, else those the
+    sequence's layout holds (:func:`layout_poses`; ``log`` gets a line saying which). Too few
+    for a sequence's images is refused here, a video's are checked as its frames come."""
     from gac_jax.tracking import read_pose_file
 
     path = args.poses
     if path is None:
-        found = layout_poses(source)
+        found = layout_poses(getattr(source, "source", source))
         if found is None:
             return None
-        log(found[1])
-        return found[0]
+        log(found[2])
+        return os.fspath(found[1]), found[0]
     if not Path(path).is_file():
         raise KittiFormatError(path, "poses file not found")
-    frames = source.expected_frames
-    if frames is None:
-        raise KittiFormatError(path, "the stream's frame count is unknown: poses cannot be checked")
-    return read_pose_file(path, frames)
+    poses = read_pose_file(path)
+    images = getattr(getattr(source, "source", source), "images", None)  # counted, not guessed
+    if images is not None and len(poses) < len(images):
+        raise KittiFormatError(
+            path, f"{len(poses)} poses for {len(images)} frames (one line of 12 numbers per frame)"
+        )
+    return os.fspath(path), poses
 
 
 def tracking_outputs(args: argparse.Namespace, source, plan, detector, poses, fps: float):
     """``(results writer, tracking stage)`` of ``--track`` (``plan``: the stream's checked
-    :class:`~gac_jax.streams.output_plan.OutputPlan`: ``tracks.jsonl`` or ``tracking/``)."""
+    :class:`~gac_jax.streams.output_plan.OutputPlan`: ``tracks.jsonl`` or ``tracking/``;
+    ``poses``: :func:`stream_poses`)."""
     from gac_jax.api.tracker import Tracker3D
     from gac_jax.streams.outputs import JsonlResults
     from gac_jax.streams.tracking import KittiTrackingResults, TrackingStage
@@ -136,4 +144,5 @@ def tracking_outputs(args: argparse.Namespace, source, plan, detector, poses, fp
     else:
         results = KittiTrackingResults(plan.results, sequence_name(source))
     scale = getattr(args, "video_scale", 1.0)
-    return results, TrackingStage(tracker, fps, args.realtime, poses, scale)
+    name, poses = poses if poses is not None else ("poses", None)
+    return results, TrackingStage(tracker, fps, args.realtime, poses, scale, name)

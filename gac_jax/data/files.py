@@ -48,12 +48,18 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:  # named for the user: the file, not the hidden temporary one
+        raise OSError(e.errno, e.strerror, os.fspath(path)) from None
     try:
         with naming(path), os.fdopen(fd, mode) as f:
             os.fchmod(f.fileno(), FILE_MODE)  # mkstemp makes 0600; give what open() would
             yield f
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except OSError as e:
+            raise OSError(e.errno, e.strerror, os.fspath(path)) from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)

@@ -140,17 +140,19 @@ class AnnotatedVideo:
         if not self._writer.isOpened():
             raise KittiFormatError(self.path, f"OpenCV cannot write this video ({w}x{h})")
 
-    def write(self, rgb: np.ndarray) -> None:
-        """Appends one picture (H, W, 3) uint8 RGB; raises ``OSError`` naming the file when
-        it cannot be written (the frames before it stay). An MP4's frames are encoded on the
-        encoder's thread: its failure is raised by the next ``write`` or ``close``."""
+    def write(self, rgb: np.ndarray, time_s: float | None = None) -> None:
+        """Appends one picture (H, W, 3) uint8 RGB shown at ``time_s`` seconds (the frame's
+        own time; None: ``1 / fps`` after the previous; MP4 only, OpenCV's containers play at
+        ``fps``); raises ``OSError`` naming the file when it cannot be written (the frames
+        before it stay). An MP4's frames are encoded on the encoder's thread: its failure is
+        raised by the next ``write`` or ``close``."""
         h, w = rgb.shape[:2]
         if self.size is None:
             self._open(h, w)
         if (h, w) != self.size:
             raise ValueError(f"picture of {w}x{h} in a video of {self.size[1]}x{self.size[0]}")
         if self._mp4 is not None:
-            self._mp4.write(rgb)
+            self._mp4.write(rgb, time_s)
             return
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
         if self._pad != (0, 0):

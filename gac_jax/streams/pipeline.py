@@ -90,7 +90,8 @@ class StreamReport:
       before the source ended; rates: :meth:`StreamRates.summary`; error: the first failure
       (a stage's exception, or the source's report of a damaged input), None if none;
       write_error: the failed write of an output that ended the stream (also ``error``), None
-      if none; stage_ms: :meth:`StreamPipeline.stage_ms`.
+      if none; stage_ms: :meth:`StreamPipeline.stage_ms`; damaged: the source's damaged
+      frames, skipped (not in ``delivered``; :mod:`gac_jax.streams.damaged_frames`).
     """
 
     delivered: int
@@ -103,6 +104,7 @@ class StreamReport:
     error: BaseException | None = None
     write_error: BaseException | None = None
     stage_ms: dict[str, float] = dataclasses.field(default_factory=dict)
+    damaged: int = 0
 
 
 class StreamPipeline:
@@ -124,6 +126,8 @@ class StreamPipeline:
       network_requests: network calls in flight at once (> 1:
         :class:`~gac_jax.streams.async_network.AsyncNetworkStage`; the detector needs
         ``infer_async``).
+      on_first_frame: called (in the write stage) once the first frame's picture and results
+        are written (``--overwrite`` deletes the earlier results then).
     """
 
     def __init__(
@@ -143,6 +147,7 @@ class StreamPipeline:
         track=None,
         network_requests: int = 1,
         recorder=None,
+        on_first_frame: Callable[[], None] | None = None,
     ):
         self.source, self.detector = source, detector
         self.recorder = recorder
@@ -153,6 +158,7 @@ class StreamPipeline:
         self.track = track
         self.rates = StreamRates()
         self.network_requests = network_requests
+        self.on_first_frame = on_first_frame
         self._read_q = LatestSlot() if realtime else queue.Queue(queue_size)
         # live: the network takes the newest prepared frame too (an older one is dropped)
         self._prepared_q = LatestSlot() if realtime else queue.Queue(max(queue_size, batch_size))
@@ -349,13 +355,21 @@ class StreamPipeline:
                 self._busy(WRITE, t0)
                 with self._lock:
                     self.written += 1
+                if self.written == 1 and self.on_first_frame is not None:
+                    try:
+                        self.on_first_frame()
+                    except Exception as e:  # the frames are written; only tell
+                        self.log(f"warning: {e}")
 
     def _write_frame(self, frame: Frame, det, objects, picture, needs_record: bool) -> None:
         """The frame's picture, then its results; when the results fail the picture is cut
         off again where the container allows, so the video holds the frames with results."""
         if self.video is not None:
-            self.video.write(picture)
-        record = det.to_dict() if needs_record and self.results is not None else {}
+            self.video.write(picture, frame.time)
+        record = {}
+        if needs_record and (self.results is not None or self.recorder is not None):
+            when = {} if frame.time is None else {"time": round(frame.time, 6)}
+            record = {**when, **det.to_dict()}
         if self.results is not None:
             try:
                 self.results.write(frame.frame_id, frame.index, objects, record)
@@ -427,4 +441,5 @@ class StreamPipeline:
             error=self.errors[0] if self.errors else None,
             write_error=self.write_error,
             stage_ms=self.stage_ms(),
+            damaged=getattr(getattr(self.source, "damaged", None), "count", 0),
         )

@@ -5,16 +5,18 @@ each with its calibration ``P2`` and ground plane, and checks the calibration ag
 first frame's size before anything else runs, so a wrong input fails in a second with one
 line (:class:`~gac_jax.data.files.KittiFormatError`, ``<input>: <problem>``).
 
-* :class:`VideoSource`: any container OpenCV reads; fps from the file; a file that ends before
-  the frame count of its header is reported by :meth:`VideoSource.check_complete`.
+* :class:`VideoSource`: any container FFmpeg reads (PyAV); the frames' own timestamps; a
+  damaged frame is skipped, a file whose last frames cannot be decoded is reported by
+  :meth:`VideoSource.check_complete` (:mod:`gac_jax.streams.damaged_frames`).
 * :class:`CameraSource`: a ``cv2.VideoCapture`` device (``live``: frames come at the camera's
-  pace whether or not they are taken).
+  pace whether or not they are taken; a frame's time is when it was read).
 * :class:`SequenceSource`: a folder of images, sorted by name; in the KITTI tracking layout
   (``ROOT/training/image_02/SSSS/NNNNNN.png``) the calibration ``ROOT/training/calib/SSSS.txt``
   and the per-frame planes ``ROOT/training/planes/SSSS/NNNNNN.txt`` are found by themselves;
   in the KITTI raw layout (``DATE/DATE_drive_NNNN_sync/image_02/data``, its ``image_02`` or
   the drive folder) the day's ``DATE/calib_cam_to_cam.txt`` (with the day's other two files)
-  and the frames' times ``image_02/timestamps.txt`` (:mod:`gac_jax.data.kitti_raw`).
+  and the frames' times ``image_02/timestamps.txt`` (:mod:`gac_jax.data.kitti_raw`); an image
+  that cannot be read is skipped.
 * :class:`PacedSource`: another source delivered at a fixed rate, as a camera would (a
   recording replayed live: ``--realtime`` on a file).
 
@@ -40,8 +42,11 @@ from gac_jax.data.kitti import read_plane
 from gac_jax.data.kitti_calib import read_calib
 from gac_jax.data.kitti_raw import RawDrive
 from gac_jax.data.kitti_tracking import KittiTrackingLayout
+from gac_jax.streams.damaged_frames import DamagedFrames
+from gac_jax.streams.input_files import check_input_file
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+MAX_CAMERA = 99  # OpenCV reads a camera index of 100 or more as backend * 100 + device
 
 
 def quiet_video_backend() -> None:
@@ -64,8 +69,10 @@ class Frame:
       P2: (3, 4) float64 projection of the frame.
       plane: (4,) ground plane in the camera frame; None: the detector's level camera.
       t_read: ``time.perf_counter()`` when reading the frame began (latency starts here).
-      time: seconds since the first frame by the recording's own clock (a KITTI raw drive's
-        ``timestamps.txt``); None: the source has none.
+      time: the frame's time in seconds from the stream's first frame (a video's timestamps,
+        a KITTI raw drive's ``timestamps.txt``, else a sequence's frame rate, a camera's read
+        times): the tracker's and the annotated video's timing. None: unknown (``index / fps``
+        is assumed).
     """
 
     index: int
@@ -105,15 +112,21 @@ def _check_size(image: np.ndarray, size: tuple[int, int], where: str, what: str)
 
 
 class VideoSource:
-    """Frames of a video file (``cv2.VideoCapture``), decoded in order.
+    """Frames of a video file, decoded in order (PyAV: FFmpeg's demuxers and decoders).
 
     Args:
-      path: the video (any container and codec OpenCV's FFmpeg reads).
+      path: the video (any container and codec FFmpeg reads; a name that is not UTF-8 too).
       P2: (3, 4) its calibration, read from ``calib`` (named in errors).
       plane: (4,) ground plane of every frame, or None.
-      decode_threads: FFmpeg's decoding threads (a stream's thread budget: 1, the read stage
-        is a thread of its own); None: FFmpeg's own choice (every core). A video FFmpeg
-        cannot open is tried with OpenCV's other backends, at their own thread count.
+      decode_threads: the decoder's threads (a stream's thread budget: 1, the read stage is
+        a thread of its own); None: FFmpeg's own choice (every core).
+      warn: where the warning line of a damaged frame goes (default stderr).
+
+    A frame's time is its timestamp in the container (PTS, seconds from the first frame), so
+    a variable-frame-rate recording keeps its timing; a frame without one (or one not after
+    the previous) is placed ``1 / fps`` after the previous. A frame the decoder rejects, or a
+    packet the container flags as corrupt, is skipped (:mod:`gac_jax.streams.damaged_frames`);
+    the header's frame count is only reported (:attr:`expected_frames`), never relied on.
     """
 
     live = False
@@ -125,74 +138,144 @@ class VideoSource:
         calib: str,
         plane: np.ndarray | None = None,
         decode_threads: int | None = None,
+        warn=None,
     ):
+        import av
+
         self.name = os.fspath(path)
-        if not Path(path).is_file():
-            raise KittiFormatError(path, "video not found")
-        self._capture = None
-        if decode_threads is not None:
-            capture = cv2.VideoCapture(
-                self.name, cv2.CAP_FFMPEG, [cv2.CAP_PROP_N_THREADS, int(decode_threads)]
-            )
-            self._capture = capture if capture.isOpened() else None
-        if self._capture is None:
-            self._capture = cv2.VideoCapture(self.name)
-        if not self._capture.isOpened():
+        check_input_file(path, "video")
+        try:
+            self._container = av.open(self.name, metadata_errors="ignore")
+        except PermissionError:
+            raise KittiFormatError(path, "cannot be read (permission denied)") from None
+        except (av.error.FFmpegError, OSError, ValueError):
             raise KittiFormatError(
                 path, "cannot be opened as a video (damaged, truncated or not a video file)"
-            )
-        fps = self._capture.get(cv2.CAP_PROP_FPS)
+            ) from None
+        if not self._container.streams.video:
+            self.close()
+            raise KittiFormatError(path, "holds no video stream")
+        self._stream = self._container.streams.video[0]
+        codec = self._stream.codec_context
+        codec.thread_type = "AUTO"
+        codec.thread_count = 0 if decode_threads is None else int(decode_threads)
+        rate = self._stream.guessed_rate or self._stream.average_rate
+        fps = float(rate) if rate else math.nan
         self.fps = fps if math.isfinite(fps) and fps > 0 else None
-        count = int(self._capture.get(cv2.CAP_PROP_FRAME_COUNT))
-        self.expected_frames = count if count > 0 else None
+        self.expected_frames = self._stream.frames or None  # the header's: reported only
         self.P2, self.plane = np.asarray(P2, np.float64), plane
+        self.damaged = DamagedFrames(self.name, "frame", warn)
         self.decoded = 0
+        self.position = 0  # frames decoded or found damaged
+        self._packets = None
+        self._ready: list = []  # (position, av.VideoFrame) decoded, not yet delivered
+        self._ended = False
+        self._t0: float | None = None
+        self._last_time: float | None = None
         t0 = time.perf_counter()
-        first = self._decode()
+        first = self._next_image()
         if first is None:
             self.close()
             raise KittiFormatError(path, "no frame could be decoded (damaged or truncated video)")
-        self.size = first.shape[:2]
+        self.size = first[1].shape[:2]
         check_calibration(self.P2, self.size, calib, self.name)
-        self._pending: tuple[np.ndarray, float] | None = (first, t0)
+        self._pending = (first, t0)
 
     @property
     def decode_threads(self) -> int | None:
-        """The decoder's threads as OpenCV reports them (None: the backend does not say)."""
-        n = int(self._capture.get(cv2.CAP_PROP_N_THREADS))
+        """The decoder's threads (None: FFmpeg's own choice)."""
+        n = int(self._stream.codec_context.thread_count)
         return n if n > 0 else None
 
-    def _decode(self) -> np.ndarray | None:
-        ok, bgr = self._capture.read()
-        if not ok or bgr is None:
-            return None
+    def _decode_packet(self, packet) -> None:
+        """Decodes ``packet`` into :attr:`_ready`; a rejected or corrupt one is a damaged
+        frame."""
+        import av
+
+        if packet.size and packet.is_corrupt:  # cut short (a truncated file) or flagged
+            self._damaged("is cut short or corrupt in the container")
+            return
+        try:
+            frames = packet.decode()
+        except av.error.EOFError:
+            frames = []
+        except (av.error.FFmpegError, ValueError) as e:
+            self._damaged(f"cannot be decoded ({_reason(e)})")
+            return
+        for frame in frames:
+            if frame.is_corrupt:
+                self._damaged("is decoded with errors (corrupt)")
+                continue
+            self._ready.append((self.position, frame))
+            self.position += 1
+
+    def _damaged(self, reason: str) -> None:
+        i, self.position = self.position, self.position + 1
+        self.damaged.skip(f"{i:06d}", reason)
+
+    def _next_image(self) -> tuple[int, np.ndarray, float] | None:
+        """``(position, RGB image, time)`` of the next whole frame, None at the end."""
+        import av
+
+        while not self._ready:
+            if self._ended:
+                return None
+            if self._packets is None:
+                self._packets = self._container.demux(self._stream)
+            try:
+                packet = next(self._packets)
+            except StopIteration:
+                self._ended = True
+                continue
+            except (av.error.FFmpegError, ValueError) as e:  # the container itself is damaged
+                self._packets = None  # a new demuxing pass resumes after the damage
+                self._damaged(f"cannot be read from the container ({_reason(e)})")
+                continue
+            self._decode_packet(packet)
+        position, frame = self._ready.pop(0)
+        image = frame.to_ndarray(format="rgb24")
         self.decoded += 1
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        self.damaged.good()
+        return position, image, self._frame_time(frame.time)
+
+    def _frame_time(self, t: float | None) -> float:
+        """Seconds from the first frame (see the class doc)."""
+        known = t is not None and math.isfinite(t)
+        if self._t0 is None:
+            self._t0, self._last_time = (t if known else 0.0), 0.0
+            return 0.0
+        step = 1.0 / (self.fps or 10.0)
+        relative = t - self._t0 if known else self._last_time + step
+        if not relative > self._last_time:
+            relative = self._last_time + step
+        self._last_time = relative
+        return relative
 
     def read(self) -> Frame | None:
         if self._pending is not None:
-            (image, t0), self._pending = self._pending, None
+            (item, t0), self._pending = self._pending, None
         else:
             t0 = time.perf_counter()
-            image = self._decode()
-            if image is None:
+            item = self._next_image()
+            if item is None:
                 return None
-        i = self.decoded - 1
+        i, image, t = item
         _check_size(image, self.size, f"{self.name} frame {i}", "the first frame is")
-        return Frame(i, f"{i:06d}", image, self.P2, self.plane, t0)
+        return Frame(i, f"{i:06d}", image, self.P2, self.plane, t0, t)
 
     def check_complete(self) -> None:
-        """After the last frame: raises if fewer frames decoded than the header announced
-        (more than one short: some containers round their count)."""
-        if self.expected_frames is not None and self.decoded < self.expected_frames - 1:
-            raise KittiFormatError(
-                self.name,
-                f"video ends after {self.decoded} of its {self.expected_frames} frames "
-                f"(truncated or damaged); the results of those {self.decoded} frames are written",
-            )
+        """After the last frame: raises if the frames just before the end were damaged (a
+        truncated file); the header's frame count is not consulted."""
+        self.damaged.check_end(self.decoded)
 
     def close(self) -> None:
-        self._capture.release()
+        self._container.close()
+
+
+def _reason(error: BaseException) -> str:
+    """FFmpeg's reason for ``error`` without PyAV's errno and function name."""
+    text = getattr(error, "strerror", None) or str(error)
+    return str(text).rstrip(".").lower()
 
 
 class CameraSource:
@@ -208,9 +291,10 @@ class CameraSource:
 
     def __init__(self, index: int, P2: np.ndarray, calib: str, plane: np.ndarray | None = None):
         self.name = f"camera {index}"
-        if isinstance(index, bool) or not isinstance(index, int) or index < 0:
-            # OpenCV takes -1 as "any camera" and some backends crash on it
-            raise KittiFormatError(self.name, "a camera index is an integer >= 0")
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index <= MAX_CAMERA:
+            # OpenCV takes -1 as "any camera" (some backends crash on it) and an index of 100
+            # or more as a backend's number plus a device
+            raise KittiFormatError(self.name, f"a camera index is an integer 0 to {MAX_CAMERA}")
         self._capture = cv2.VideoCapture(index)
         if not self._capture.isOpened():
             raise KittiFormatError(
@@ -220,6 +304,8 @@ class CameraSource:
         self.fps = fps if math.isfinite(fps) and fps > 0 else None
         self.P2, self.plane = np.asarray(P2, np.float64), plane
         self.index = 0
+        self._t_first: float | None = None
+        self._last_time = -math.inf
         ok, bgr = self._capture.read()
         if not ok or bgr is None:
             self.close()
@@ -232,10 +318,15 @@ class CameraSource:
         ok, bgr = self._capture.read()
         if not ok or bgr is None:
             return None
+        now = time.perf_counter()
+        if self._t_first is None:
+            self._t_first = now
+        t = max(now - self._t_first, self._last_time + 1e-6)  # strictly increasing
+        self._last_time = t
         image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
         i, self.index = self.index, self.index + 1
         _check_size(image, self.size, f"{self.name} frame {i}", "the first frame is")
-        return Frame(i, f"{i:06d}", image, self.P2, self.plane, t0)
+        return Frame(i, f"{i:06d}", image, self.P2, self.plane, t0, t)
 
     def check_complete(self) -> None:
         pass
@@ -305,7 +396,10 @@ class SequenceSource:
       plane: one ground plane for every frame; None: the tracking layout's per-frame
         ``ROOT/training/planes/SSSS/<stem>.txt`` where present, else the level camera.
       camera: 2 (``P2``) or 3 (``P3``) of the calibration.
-      fps: the rate of the annotated video (KITTI records at 10 Hz).
+      fps: the frame rate (KITTI records at 10 Hz): image ``i`` is at ``i / fps`` seconds
+        unless the folder has its own times.
+      warn: where the warning line of an image that cannot be read goes (default stderr);
+        such an image is skipped (:mod:`gac_jax.streams.damaged_frames`).
 
     Attributes:
       calibration: the :class:`~gac_jax.data.kitti_calib.Calibration` read.
@@ -317,7 +411,9 @@ class SequenceSource:
 
     live = False
 
-    def __init__(self, folder, calib=None, plane=None, camera: int = 2, fps: float = 10.0):
+    def __init__(
+        self, folder, calib=None, plane=None, camera: int = 2, fps: float = 10.0, warn=None
+    ):
         folder = Path(folder)
         self.name = os.fspath(folder)
         self.files = sequence_files(folder, camera)
@@ -329,6 +425,7 @@ class SequenceSource:
                 f"pass --calib-camera {raw.camera}",
             )
         self.images = sequence_images(self.files.images)
+        self.damaged = DamagedFrames(self.name, "image", warn)
         self.expected_frames = len(self.images)
         self.planes_dir = self.files.planes
         self.found: list[str] = []
@@ -362,7 +459,10 @@ class SequenceSource:
         self.plane = plane
         self.fps = fps
         self.index = 0
-        self.size = read_image(self.images[0]).shape[:2]
+        self._pending = self._next_image()  # the first image that can be read
+        if self._pending is None:
+            raise KittiFormatError(folder, "none of its images can be read")
+        self.size = self._pending[1].shape[:2]
         check_calibration(self.P2, self.size, os.fspath(calib), self.name)
 
     def frame_plane(self, image: Path) -> np.ndarray | None:
@@ -371,15 +471,29 @@ class SequenceSource:
         path = self.planes_dir / f"{image.stem}.txt"
         return read_plane(path) if path.is_file() else None
 
+    def _next_image(self) -> tuple[int, np.ndarray] | None:
+        """``(index, image)`` of the next image that can be read (the others are skipped);
+        None at the end."""
+        while self.index < len(self.images):
+            i, self.index = self.index, self.index + 1
+            try:
+                image = read_image(self.images[i])
+            except KittiFormatError as e:
+                self.damaged.skip(self.images[i].name, f"cannot be read ({e.problem})")
+                continue
+            self.damaged.good()
+            return i, image
+        return None
+
     def read(self) -> Frame | None:
-        if self.index >= len(self.images):
-            return None
         t0 = time.perf_counter()
-        i, self.index = self.index, self.index + 1
+        item, self._pending = self._pending or self._next_image(), None
+        if item is None:
+            return None
+        i, image = item
         path = self.images[i]
-        image = read_image(path)
         _check_size(image, self.size, os.fspath(path), "the first image of the sequence is")
-        when = None if self.times is None else float(self.times[i])
+        when = i / self.fps if self.times is None else float(self.times[i])
         return Frame(i, path.stem, image, self.P2, self.frame_plane(path), t0, when)
 
     def check_complete(self) -> None:
@@ -401,6 +515,7 @@ class PacedSource:
         self.source, self.fps = source, fps
         self.name, self.size = source.name, source.size
         self.expected_frames = source.expected_frames
+        self.damaged = getattr(source, "damaged", None)
         self._start: float | None = None
         self._next = 0
 

@@ -16,12 +16,20 @@ terminal closed), a user with Ctrl-C (SIGINT); all three are handled alike by
   (:meth:`~gac_jax.streams.pipeline.StreamPipeline.abort`); the frame being written is
   finished either way and the outputs are closed as at the end of the input.
 
+Before a command has written anything (parsing its arguments, opening its input, checking
+its outputs) a signal ends it at once with one line (:func:`exit_during_start`, installed
+first thing by ``python -m gac_jax.cli.predict``); :func:`record_early` takes over where it
+starts to create and lock its outputs. Whatever leaves through ``os._exit`` runs the
+callbacks given to :func:`at_exit` first (the output locks given back, results moved aside
+restored).
+
 Exit statuses follow the shell's convention, 128 + the signal number: 130 (SIGINT), 143
 (SIGTERM), 129 (SIGHUP).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
@@ -29,21 +37,77 @@ import sys
 NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP"}
 _early: list[int] = []  # signals that came before StopSignals was entered
 _before: dict[int, object] = {}  # the handlers before record_early
+_cleanups: list = []  # run before os._exit
+
+
+def at_exit(callback) -> None:
+    """``callback()`` runs before the command leaves through :func:`exit_now` (its errors are
+    ignored)."""
+    _cleanups.append(callback)
+
+
+def forget_at_exit() -> None:
+    """Drops the :func:`at_exit` callbacks (the command ended without ``os._exit``)."""
+    _cleanups.clear()
+
+
+def exit_now(status: int) -> None:
+    """The :func:`at_exit` callbacks (newest first), then ``os._exit(status)``."""
+    while _cleanups:
+        with contextlib.suppress(Exception):
+            _cleanups.pop()()
+    os._exit(status)
+
+
+def _exit_at_once(signum, frame) -> None:
+    with contextlib.suppress(OSError):
+        name = NAMES.get(signum, f"signal {signum}")
+        os.write(2, f"interrupted: {name} during start-up; nothing was written\n".encode())
+    os._exit(exit_status(signum))
+
+
+def _default(signum: int):
+    return signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
+
+
+def exit_during_start() -> None:
+    """Until :func:`record_early` or :func:`restore_defaults`: a stop signal ends the process
+    at once with one line on stderr (nothing has been written yet)."""
+    for signum in NAMES:
+        signal.signal(signum, _exit_at_once)
+
+
+def restore_defaults() -> None:
+    """Python's own handlers back where :func:`exit_during_start` installed its own (a
+    command that handles ``KeyboardInterrupt`` itself)."""
+    for signum in NAMES:
+        if signal.getsignal(signum) is _exit_at_once:
+            signal.signal(signum, _default(signum))
 
 
 def _record(signum, frame) -> None:
     _early.append(signum)
     if len(_early) > 1:
-        os._exit(exit_status(_early[0]))
+        exit_now(exit_status(_early[0]))
 
 
 def record_early() -> None:
-    """First thing of a stream command (after parsing its arguments): the stop signals are
-    recorded, not acted on, until :class:`StopSignals` takes over and ends the start-up (its
-    exit restores the handlers from before this call)."""
+    """Where a stream command starts to write (its outputs created and locked, before JAX
+    loads): the stop signals are recorded, not acted on, until :class:`StopSignals` takes
+    over and ends the start-up (its exit restores the handlers from before this call, or
+    :func:`forget_early`)."""
     for signum in NAMES:
         previous = signal.signal(signum, _record)
-        _before.setdefault(signum, previous)
+        _before.setdefault(signum, _default(signum) if previous is _exit_at_once else previous)
+
+
+def forget_early() -> None:
+    """The handlers from before :func:`record_early` back (the command ends without a
+    stream)."""
+    for signum, previous in list(_before.items()):
+        signal.signal(signum, previous)
+    _before.clear()
+    _early.clear()
 
 
 def exit_status(signum: int) -> int:
@@ -112,7 +176,7 @@ class StopSignals:
             sys.stderr.write(f"{name} again during start-up: stopped at once\n")
             sys.stderr.flush()
             sys.stdout.flush()
-            os._exit(exit_status(self.signum))
+            exit_now(exit_status(self.signum))
         if self.count == 1:
             self.pipeline.stop()
             self.log(

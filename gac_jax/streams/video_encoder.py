@@ -113,6 +113,7 @@ class Mp4Video:
         self.file = CheckedFile(path, name)
         self.codec = codec
         self._container, self._stream = _open_stream(self.file, codec, fps, even_size(*size))
+        self._rate = frame_rate(fps)
         self._queue: queue.Queue = queue.Queue(QUEUE_FRAMES)
         self.submitted = 0  # pictures handed to write()
         self.packets = 0  # packets muxed (one per frame)
@@ -128,11 +129,14 @@ class Mp4Video:
         """Frames whole in the file now (the muxer holds the newest one until the next)."""
         return max(len(self.file.marks) - 1, 0)
 
-    def write(self, rgb: np.ndarray) -> None:
-        """Queues one (h, w, 3) uint8 RGB picture; raises the encoder's error once it failed."""
+    def write(self, rgb: np.ndarray, time_s: float | None = None) -> None:
+        """Queues one (h, w, 3) uint8 RGB picture shown at ``time_s`` seconds from the first
+        (None: one frame after the previous; times are kept to the stream's 1 / fps grid, a
+        frame at least one step after the previous); raises the encoder's error once it
+        failed."""
         if self.error is not None:
             raise self.error
-        self._queue.put(rgb)
+        self._queue.put((rgb, time_s))
         self.submitted += 1
 
     def _frame(self, rgb: np.ndarray):
@@ -159,12 +163,16 @@ class Mp4Video:
     def _run(self) -> None:
         t0 = time.thread_time()
         try:
-            while (rgb := self._queue.get()) is not _END:
+            while (item := self._queue.get()) is not _END:
                 if self.error is not None:
                     continue  # failed: the pictures are dropped
                 try:
+                    rgb, time_s = item
                     frame = self._frame(rgb)
-                    frame.pts, self._pts = self._pts, self._pts + 1
+                    pts = self._pts
+                    if time_s is not None:  # the frame's own time, on the stream's grid
+                        pts = max(pts, round(time_s * float(self._rate)))
+                    frame.pts, self._pts = pts, pts + 1
                     self._mux(self._stream.encode(frame))
                 except Exception as e:
                     self.error = self.file.error or e

@@ -100,12 +100,9 @@ def acquire(workdir: str | os.PathLike) -> None:
     path = lock_path(workdir)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        holder = try_lock(fd)
     except OSError as e:
-        previous = _read(fd)
         os.close(fd)
-        if e.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-            raise WorkdirBusyError(path, _describe_holder(previous)) from None
         raise LockUnsupportedError(
             e.errno,
             f"cannot lock the run folder ({e.strerror}): its filesystem does not support file "
@@ -113,6 +110,9 @@ def acquire(workdir: str | os.PathLike) -> None:
             "filesystem for the workdir",
             os.fspath(path),
         ) from None
+    if holder is not None:
+        os.close(fd)
+        raise WorkdirBusyError(path, _describe_holder(holder))
     try:
         previous = _read(fd)
         if previous.get("pid") not in (None, os.getpid()):
@@ -127,6 +127,19 @@ def acquire(workdir: str | os.PathLike) -> None:
         os.close(fd)
         raise
     _held[key] = _Held(fd, 1, os.getpid())
+
+
+def try_lock(fd: int) -> dict | None:
+    """An exclusive ``flock`` on the lock file ``fd`` without waiting: None when taken; when
+    another process holds it, what the file says about that process (``{}`` if nothing).
+    Raises the ``OSError`` of a filesystem that cannot lock files."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as e:
+        if e.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            return _read(fd)
+        raise
+    return None
 
 
 def release(workdir: str | os.PathLike) -> None:
