@@ -36,6 +36,7 @@ def tilted_run(tmp_path_factory):
             "data.train_split=all",
             "data.val_split=all",
             "data.use_right_image=False",
+            "data.crop_top=0",  # pitched 20 degrees down: the top rows are road, not sky
             "train.num_steps=3",
             "eval.score_threshold=0.0",
             "eval.num_pictures=2",
@@ -68,7 +69,7 @@ def test_the_plane_filter_keeps_the_cars_anchors_and_drops_others(tilted_run):
     kept = np.asarray(ground_mask_from_constants(constants, batch["P2"], batch["plane"], **options))
     valid = np.asarray(constants.prior_valid).any(axis=0)
     assert not (kept & ~valid).any()
-    assert 0.05 < kept.mean() < 0.8 * valid.mean(), (kept.mean(), valid.mean())
+    assert 0.1 * valid.mean() < kept.mean() < 0.8 * valid.mean(), (kept.mean(), valid.mean())
     # the anchors that match a car (IoU > 0.5) survive the plane's filter
     boxes = np.asarray(constants.anchor_boxes)
     matched = kept_matched = 0
