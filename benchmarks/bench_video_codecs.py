@@ -43,7 +43,7 @@ sys.path.insert(0, str(REPO))
 
 def clip_pictures(frames: int) -> list[np.ndarray]:
     """Annotated pictures of generated clip 0's first ``frames`` frames (ground truth)."""
-    from gac_jax.cli.predict_stream import clip_sequence
+    from gac_jax.cli.stream_start import clip_sequence
     from gac_jax.data.files import read_image
     from gac_jax.data.kitti_tracking import KittiTrackingLayout
     from gac_jax.evaluation.detection_pictures import detection_picture

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import KITTI_SAMPLES, VENDORED_KITTI
 
-from gac_jax.cli import predict, predict_stream
+from gac_jax.cli import predict, stream_start
 from gac_jax.data.files import write_png
 from gac_jax.streams.sources import SequenceSource
 
@@ -109,7 +109,7 @@ def open_sequence(folder: Path, workdir: Path, *extra) -> SequenceSource:
     args = predict.build_parser().parse_args(
         ["--workdir", str(workdir), "--sequence", str(folder), *map(str, extra)]
     )
-    return predict_stream.open_source(args)
+    return stream_start.open_source(args)
 
 
 def homogeneous(m: np.ndarray) -> np.ndarray:

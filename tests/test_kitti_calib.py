@@ -33,7 +33,7 @@ from kitti_format_cases import (
     tracking_root,
 )
 
-from gac_jax.cli import predict, predict_stream
+from gac_jax.cli import predict, stream_start
 from gac_jax.data.files import KittiFormatError, write_png
 from gac_jax.data.kitti_calib import read_calib
 
@@ -226,7 +226,7 @@ def test_a_raw_drive_finds_the_days_calibration(tmp_path):
         ]
         assert source.times is None  # no timestamps.txt
         args = predict.build_parser().parse_args(["--workdir", "W", "--sequence", str(folder)])
-        assert predict_stream.output_folder(args) == Path("W/predict/2011_09_26_drive_0001_sync")
+        assert stream_start.output_folder(args) == Path("W/predict/2011_09_26_drive_0001_sync")
 
 
 def test_the_real_raw_clip_finds_its_calibration(tmp_path):

@@ -8,6 +8,7 @@ for raw drives and tracking sequences; ``timestamps.txt`` as the tracker's frame
 from __future__ import annotations
 
 import math
+import os
 import shutil
 
 import numpy as np
@@ -113,7 +114,8 @@ def test_oxts_poses_of_the_real_packet_match_the_devkit(tmp_path):
         (oxts / f"{k:010d}.txt").write_text(" ".join(repr(v) for v in p) + "\n")
     source = open_sequence(images, tmp_path, "--track")
     lines = []
-    poses = predict_track.stream_poses(source_args(tmp_path, images), source, lines.append)
+    where, poses = predict_track.stream_poses(source_args(tmp_path, images), source, lines.append)
+    assert where == os.fspath(oxts)
     np.testing.assert_allclose(poses, want, rtol=0, atol=1e-9)
     assert np.abs(poses[1:, :, 3]).max() > 1  # metres: the test moves
     assert lines == [predict_track.oxts_line(oxts)]
@@ -192,13 +194,13 @@ def test_tracking_layout_oxts_become_the_sequences_poses(tmp_path):
     np.testing.assert_allclose(got[2, :, 3], [2, 0, 0], atol=1e-6)  # facing north, moved east
     source = open_sequence(images, tmp_path, "--track")
     log = []
-    poses = predict_track.stream_poses(source_args(tmp_path, images), source, log.append)
+    _, poses = predict_track.stream_poses(source_args(tmp_path, images), source, log.append)
     np.testing.assert_allclose(poses, want, rtol=0, atol=1e-9)
     assert log == [predict_track.oxts_line(layout.oxts("0000"))]
     (tmp_path / "t" / "training" / "poses").mkdir()
     (layout.poses("0000")).write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 3)
     log.clear()
-    poses = predict_track.stream_poses(source_args(tmp_path, images), source, log.append)
+    _, poses = predict_track.stream_poses(source_args(tmp_path, images), source, log.append)
     assert log == [f"poses: {layout.poses('0000')}"] and np.all(poses[:, :, 3] == 0)
 
 

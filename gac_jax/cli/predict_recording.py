@@ -77,11 +77,14 @@ def check_mcap_output(path: Path, inputs: list, overwrite: bool, clear: bool) ->
 
 def open_recording(args: argparse.Namespace, detector, source, poses, default_fps: float = 10.0):
     """The ``--mcap`` recorder of the stream (frames without a plane get the detector's
-    level camera)."""
+    level camera; ``poses``: ``(path, (N, 3, 4) poses)`` of
+    :func:`~gac_jax.cli.predict_track.stream_poses`, or None)."""
     from gac_jax.streams.mcap_recording import McapRecording, McapResults
 
     height = float(detector.config.model.gac.camera_height)
     recording = McapRecording(
         args.mcap, args.mcap_profile or "foxglove", default_plane=(0.0, -1.0, 0.0, height)
     )
-    return McapResults(recording, source.fps or default_fps, args.realtime, poses)
+    return McapResults(
+        recording, source.fps or default_fps, args.realtime, None if poses is None else poses[1]
+    )

@@ -36,10 +36,10 @@ from gac_jax.streams.earlier_results import (
     TRACKING_DIR,
     TRACKS_JSONL_NAME,
 )
-from gac_jax.streams.outputs import CODECS, FRAGMENTED, check_video_path
+from gac_jax.streams.outputs import CONTAINERS, FRAGMENTED, check_video_path
 
 VIDEO_NAME = "annotated.mp4"
-OPENCV_WRITTEN = tuple(s for s in CODECS if s not in FRAGMENTED)  # containers cv2 writes
+OPENCV_WRITTEN = tuple(s for s in CONTAINERS if s not in FRAGMENTED)  # containers cv2 writes
 MIN_VIDEO_SECONDS = 3.0  # free space needed before starting: this much video
 # bytes of a JPEG frame (quality 90) per pixel of the annotated picture (camera view + bird's-eye
 # view, about twice the frame): measured 0.2 to 0.3 on KITTI frames; with room to spare
