@@ -15,7 +15,7 @@ from gac_jax.data.synthetic import render, shapes
 from gac_jax.data.synthetic.calibration import KITTI_SIZE
 from gac_jax.data.synthetic.frame import make_frame
 from gac_jax.data.synthetic.scene import CLASS_SIZES, sample_scene
-from gac_jax.data.synthetic.writer import DONE, generate_dataset
+from gac_jax.data.synthetic.writer import DONE, DatasetSpec, generate_dataset
 from gac_jax.geometry import box3d_corners, project
 
 P2 = np.array([[721.5, 0.0, 609.6, 44.9], [0.0, 721.5, 172.9, 0.2], [0.0, 0.0, 1.0, 0.003]])
@@ -160,3 +160,39 @@ def test_camera_effects_augmentation_changes_pixels_only():
     assert np.abs(out1["image"] - image).mean() > 1.0
     off = CameraEffects(p_gamma=0, p_white_balance=0, p_blur=0, p_noise=0, p_jpeg=0)
     np.testing.assert_array_equal(off({**sample, "rng": np.random.default_rng(4)})["image"], image)
+
+
+def test_randomized_background_repaints_the_background_only():
+    plain = make_frame(0, 11, (188, 621))
+    again = make_frame(0, 11, (188, 621), randomize=1.0)
+    other = make_frame(0, 11, (188, 621), randomize=1.0)
+    np.testing.assert_array_equal(again.views[2].image, other.views[2].image)  # per seed
+    for cam in (2, 3):
+        a, b = plain.views[cam], again.views[cam]
+        np.testing.assert_array_equal(a.depth, b.depth)  # geometry unchanged
+        np.testing.assert_array_equal(a.object_ids, b.object_ids)
+        diff = np.abs(a.image.astype(np.int16) - b.image.astype(np.int16)).sum(-1)
+        cars = a.object_ids >= 0
+        background = (a.surface == render.SURFACE) & ~cars
+        assert np.mean(diff[background] > 0) > 0.3  # repainted
+        # (road users keep their colours; only blur from the camera mixes in their borders)
+        assert diff[cars].mean() < 0.2 * diff[background].mean()
+    np.testing.assert_array_equal(plain.objects.bbox, again.objects.bbox)
+    np.testing.assert_array_equal(plain.objects.location, again.objects.location)
+
+
+def test_randomize_zero_and_undrawn_frames_are_the_frames_without_it():
+    drawn = []
+    for index in range(5):
+        plain = make_frame(3, index, (94, 311))
+        half = make_frame(3, index, (94, 311), randomize=0.5)
+        drawn.append(not np.array_equal(plain.views[2].image, half.views[2].image))
+        assert np.array_equal(plain.views[2].depth, half.views[2].depth)
+    assert 1 <= sum(drawn) <= 4  # about half of the frames are randomized, the rest unchanged
+    zero = make_frame(3, 4, (94, 311), randomize=0.0)
+    np.testing.assert_array_equal(zero.views[2].image, plain.views[2].image)
+    # (a dataset without it is described as before, so existing caches stay valid)
+    assert "randomize" not in DatasetSpec(num_frames=4, seed=3).to_json()
+    assert DatasetSpec(num_frames=4, seed=3, randomize=0.5).to_json()["randomize"] == 0.5
+    with pytest.raises(ValueError, match="randomize"):
+        DatasetSpec(num_frames=4, seed=3, randomize=1.5).validate()

@@ -21,14 +21,16 @@ def synthetic_config() -> ml_collections.ConfigDict:
     """The configs' ``data.synthetic`` block: what the embedded dataset is made of.
 
     ``rigs``: ``'kitti'`` (KITTI's rigs) or ``'multi'`` (eight vehicles, ground planes,
-    :mod:`gac_jax.data.synthetic.rigs`); ``workers``: generator processes (0: one per
+    :mod:`gac_jax.data.synthetic.rigs`); ``randomize``: share of frames with a randomized
+    background (:mod:`gac_jax.data.synthetic.domain_randomization`; 0: none, a cache folder of
+    its own otherwise); ``workers``: generator processes (0: one per
     core; the content does not depend on them). Both configs share it, so the detector
     and the depth network train on one generated dataset.
     """
     return ml_collections.ConfigDict(
         dict(
             num_frames=1000, seed=0, height=375, width=1242, val_fraction=0.5, rigs="kitti",
-            workers=0,
+            randomize=0.0, workers=0,
         )
     )  # fmt: skip
 
@@ -44,6 +46,8 @@ def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
     # (a new version of the frames gets a folder of its own: an older cache stays readable to
     # the run folders that recorded it, and is never taken for the new one)
     name += f"_v{FORMAT_VERSION}" if FORMAT_VERSION > 1 else ""
+    randomize = float(s.get("randomize", 0.0))
+    name += f"_dr{randomize:g}" if randomize > 0 else ""
     rig_set = s.get("rigs", "kitti")
     return default_cache_dir() / (name if rig_set == "kitti" else f"{name}_{rig_set}rig")
 
@@ -78,6 +82,7 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
             width=s.width,
             val_fraction=s.val_fraction,
             rig_set=s.get("rigs", "kitti"),
+            randomize=float(s.get("randomize", 0.0)),
             workers=s.get("workers") or None,  # 0 / absent: one per core
             progress=True,  # what, where and about how long; then a bar or a line per ~10 %
         )

@@ -152,6 +152,15 @@ def build_parser() -> argparse.ArgumentParser:
         "clips: one vehicle per sequence)",
     )
     p.add_argument(
+        "--randomize",
+        type=float,
+        default=None,
+        metavar="SHARE",
+        help="frames only: share of frames (0-1) whose background (buildings, trees, street "
+        "furniture) gets random colours and patterns, for detectors meant for real cameras "
+        "(default 0)",
+    )
+    p.add_argument(
         "--overwrite", action="store_true", help="replace a dataset made with other arguments"
     )
     p.add_argument(
@@ -194,6 +203,8 @@ def _check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
         parser.error("clips need both --sequences N and --frames-per-sequence F")
     if args.val_fraction is not None:
         parser.error("--val-fraction: clips have no splits")
+    if args.randomize is not None:
+        parser.error("--randomize: for frames only")
 
 
 def _generate(args: argparse.Namespace, what: str, call):
@@ -268,6 +279,7 @@ def main(argv: list[str] | None = None) -> int:
             val_fraction=0.5 if args.val_fraction is None else args.val_fraction,
             classes=classes,
             rig_set=args.rigs,
+            randomize=args.randomize or 0.0,
             workers=args.workers,
             overwrite=args.overwrite,
             progress=not args.quiet,

@@ -2,7 +2,8 @@
 
 Frame ``index`` of a dataset with ``seed`` draws all its randomness from
 ``numpy.random.SeedSequence([seed, index])``, so a frame does not depend on the
-number of frames, the split or the worker that renders it.
+number of frames, the split or the worker that renders it. Domain randomization draws from
+a stream of its own, so a frame it leaves alone is the same with or without it.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import dataclasses
 import numpy as np
 
 from gac_jax.data.kitti import Calibration, KittiObjects
-from gac_jax.data.synthetic import calibration, labels, lidar, render, rigs
+from gac_jax.data.synthetic import calibration, domain_randomization, labels, lidar, render, rigs
 from gac_jax.data.synthetic.scene import Scene, sample_scene
 
 
@@ -44,7 +45,8 @@ class Frame:
 
 
 def _streams(seed: int, index: int) -> list[np.random.Generator]:
-    children = np.random.SeedSequence([int(seed), int(index)]).spawn(4)
+    # (children are keyed by their position: a fifth stream leaves the first four as they were)
+    children = np.random.SeedSequence([int(seed), int(index)]).spawn(5)
     return [np.random.default_rng(c) for c in children]
 
 
@@ -61,6 +63,7 @@ def make_frame(
     pitch: float | None = None,
     camera_height: float | None = None,
     rig_set: str = "kitti",
+    randomize: float = 0.0,
 ) -> Frame:
     """Samples and renders frame ``index`` of the dataset ``seed``.
 
@@ -70,8 +73,10 @@ def make_frame(
       counts: class -> (min, max) road users (default ``scene.DEFAULT_COUNTS``).
       pitch, camera_height: fix the camera pose (radians, metres) instead of sampling it.
       rig_set: ``"kitti"`` (the default dataset) or ``"multi"`` (:mod:`rigs`).
+      randomize: share of frames whose background gets random colours and patterns
+        (:mod:`domain_randomization`; 0 = none).
     """
-    rig_rng, scene_rng, camera_rng, lidar_rng = _streams(seed, index)
+    rig_rng, scene_rng, camera_rng, lidar_rng, random_rng = _streams(seed, index)
     rig_index = rigs.choose_rig(rig_set, rig_rng)
     rig = rigs.cameras(rig_set)[rig_index]
     pose = rigs.sample_pose(rig_set, rig_index, rig_rng)
@@ -81,6 +86,10 @@ def make_frame(
     image_size = rigs.image_size(rig, image_size)
     calib = calibration.object_calibration(rig, image_size)
     scene = sample_scene(scene_rng, calib.P2, image_size, counts, pitch, camera_height)
+    if randomize > 0.0:
+        scene.background = domain_randomization.randomize_background(
+            scene.background, random_rng, randomize
+        )
     views = {
         2: render.render_view(scene, calib.P2, image_size, camera_rng),
         3: render.render_view(scene, calib.P3, image_size, camera_rng),

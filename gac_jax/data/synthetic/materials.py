@@ -176,6 +176,9 @@ def textured_faces(solid: shapes.Solid, face: np.ndarray, local: np.ndarray, dep
             base[sel] = _glass(solid.params, x, y, z, base[sel])
         elif code == shapes.CARSIDE:
             base[sel] = _car_side(solid.params, x, y, base[sel])
+        elif code == shapes.RANDOM:
+            albedo = solid.colors[face[sel]]
+            base[sel] = _random_pattern(solid.params, x, y, z, albedo, base[sel])
         elif code in (shapes.HEADLIGHTS, shapes.TAILLIGHTS):
             base[sel] = _lamps(solid.params, code, y, z, base[sel])
     return base
@@ -223,6 +226,32 @@ def _facade(params, face, x, y, z, base, fade):
     tint = base[idx] / np.maximum(base[idx].max(axis=1, keepdims=True), 1e-3)
     out[idx] = glass * (0.5 + 0.5 * tint)
     return out
+
+
+def _random_pattern(params, x, y, z, albedo, base):
+    """A domain-randomized surface (:mod:`domain_randomization`; texture frame = road frame).
+
+    ``params``: pattern (0 noise, 1 stripes, 2 checks, 3 spots), period in metres,
+    contrast, second colour RGB, direction in the ground plane (radians), hash salt. The
+    pattern mixes the face's albedo towards the second colour, keeping its lighting.
+    """
+    kind, scale, contrast, r, g, b, angle, salt = params[:8]
+    inv = np.float32(1.0 / scale)
+    u = (x * np.float32(np.cos(angle)) + z * np.float32(np.sin(angle))) * inv
+    v = y * inv
+    if kind == 0:
+        m = 0.5 + 0.3 * (lookup("medium", u, v, 16.0) + 0.5 * lookup("fine", v, u, 32.0))
+    elif kind == 1:
+        m = 0.5 + 0.5 * np.sin(np.float32(2 * np.pi) * (u + 0.3 * v))
+    elif kind == 2:
+        m = hash01(np.floor(u), np.floor(v), int(salt))
+    else:
+        fu, fv = u - np.floor(u) - 0.5, v - np.floor(v) - 0.5
+        radius = 0.15 + 0.3 * hash01(np.floor(u), np.floor(v), int(salt))
+        m = (fu * fu + fv * fv < radius * radius).astype(np.float32)
+    w = (np.float32(contrast) * np.clip(m, 0.0, 1.0)).astype(np.float32)[:, None]
+    ratio = np.clip(np.array([r, g, b], np.float32) / np.maximum(albedo, 0.02), 0.0, 4.0)
+    return base * (1.0 - w + w * ratio)
 
 
 def _lamps(params, code, y, z, base):

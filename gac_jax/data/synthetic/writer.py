@@ -100,6 +100,7 @@ class DatasetSpec(SceneArguments):
     val_fraction: float = 0.5
     classes: tuple[tuple[str, int, int], ...] = tuple((k, *v) for k, v in DEFAULT_COUNTS.items())
     rigs: str = "kitti"  # the camera rig set (gac_jax.data.synthetic.rigs)
+    randomize: float = 0.0  # share of frames with a randomized background (domain_randomization)
 
     def validate(self) -> None:
         """Raises ValueError with a clear message for unusable arguments."""
@@ -112,6 +113,8 @@ class DatasetSpec(SceneArguments):
         self.validate_scene()
         if not 0.0 <= self.val_fraction <= 1.0:
             raise ValueError(f"val fraction must be in [0, 1], got {self.val_fraction}")
+        if not 0.0 <= self.randomize <= 1.0:
+            raise ValueError(f"randomize must be a share in [0, 1], got {self.randomize}")
 
     def to_json(self) -> dict:
         return {
@@ -125,6 +128,7 @@ class DatasetSpec(SceneArguments):
             "classes": {name: [int(lo), int(hi)] for name, lo, hi in self.classes},
             # (absent for KITTI's rigs: the default dataset's description is what it was)
             **({"rigs": self.rigs} if self.rigs != "kitti" else {}),
+            **({"randomize": float(self.randomize)} if self.randomize > 0 else {}),
         }
 
     def splits(self) -> dict[str, list[int]]:
@@ -244,7 +248,9 @@ def _write_frame(job: _Job, index: int) -> float:
     """Renders and writes frame ``index``; returns the seconds it took."""
     start = time.perf_counter()
     spec = job.spec
-    frame = make_frame(spec.seed, index, spec.image_size, spec.counts, rig_set=spec.rigs)
+    frame = make_frame(
+        spec.seed, index, spec.image_size, spec.counts, rig_set=spec.rigs, randomize=spec.randomize
+    )
     paths = frame_paths(Path(job.root), index, frame.rig, job.split_of[index], spec.rigs)
     write_calib(paths["calib"], frame.calib)
     write_label(paths["label"], frame.objects)
@@ -294,6 +300,7 @@ def generate_dataset(
     val_fraction: float = 0.5,
     classes: dict[str, tuple[int, int]] | None = None,
     rig_set: str = "kitti",
+    randomize: float = 0.0,
     workers: int | None = None,
     overwrite: bool = False,
     progress: bool = False,
@@ -318,6 +325,8 @@ def generate_dataset(
       rig_set: ``"kitti"`` (KITTI's rigs) or ``"multi"`` (eight vehicles, two held out into
         ``val_heldout``, ground planes in ``training/planes/`` and ``depth/planes/``;
         :mod:`gac_jax.data.synthetic.rigs`).
+      randomize: share of frames whose background gets random colours and patterns
+        (:mod:`gac_jax.data.synthetic.domain_randomization`; 0 = none, the default).
       workers: processes (default ``os.cpu_count()``; 1 = in this process).
       overwrite: replace a dataset made with other arguments instead of failing.
       progress: show a progress bar.
@@ -340,6 +349,7 @@ def generate_dataset(
         val_fraction=float(val_fraction),
         classes=tuple((str(k), int(lo), int(hi)) for k, (lo, hi) in counts.items()),
         rigs=rig_set,
+        randomize=float(randomize),
     )
     spec.validate()
     root = Path(out_dir)
