@@ -139,6 +139,40 @@ def test_the_ros2_cdr_is_mcap_ros2_supports(tmp_path):
             assert encode(schema, message) == serialisers[schema](message), (key, i)
 
 
+def test_frames_of_jpeg_files_are_stored_as_they_are(tmp_path):
+    """A sequence of JPEG files: each frame carries its file's bytes and the recording's
+    images are those bytes, not a JPEG encoded again; a PNG's frame carries none and its
+    image is a JPEG of the picture."""
+    from mcap.reader import make_reader
+
+    from gac_jax.data.files import write_png
+    from gac_jax.streams.mcap_recording import McapResults
+    from gac_jax.streams.sources import SequenceSource
+
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    rgb = pictures(3)
+    files = [cv2.imencode(".jpg", image[..., ::-1])[1].tobytes() for image in rgb[:2]]
+    for i, data in enumerate(files):
+        (folder / f"{i:06d}.jpg").write_bytes(data)
+    write_png(folder / "000002.png", rgb[2])
+    (folder / "calib.txt").write_text("P2: 700 0 80 45 0 700 37 0.2 0 0 1 0.003\n")
+    source = SequenceSource(folder)
+    frames = [source.read() for _ in range(3)]
+    assert [f.jpeg for f in frames] == [*files, None]
+    with McapRecording(tmp_path / "r.mcap") as rec:
+        results = McapResults(rec, FPS)
+        for i, frame in enumerate(frames):
+            results.write_frame(frame, Tracks(i), None)
+    with open(tmp_path / "r.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=decoders("foxglove"))
+        images = [m for _, c, _, m in reader.iter_decoded_messages() if c.topic == "/camera/image"]
+    assert [im.data for im in images[:2]] == files and images[2].data not in files
+    assert {im.format for im in images} == {"jpeg"}
+    decoded = cv2.imdecode(np.frombuffer(images[2].data, np.uint8), cv2.IMREAD_COLOR)
+    assert psnr(decoded[..., ::-1], rgb[2]) > 25
+
+
 def decoders(profile):
     from mcap.decoder import DecoderFactory as Factory
 
@@ -223,7 +257,9 @@ def test_a_killed_recording_reads_back_to_its_last_chunk(tmp_path):
     """The hidden partial of a writer that never closed (a kill), cut inside a chunk: the
     ``mcap`` stream reader gives every message of the whole chunks, in order, then stops at
     the cut (no summary: the seeking reader cannot open it, ``mcap recover`` repairs it)."""
-    rec = McapRecording(tmp_path / "r.mcap", chunk_size=64 << 10)
+    # JPEG quality 90: the chunks end where this test was laid out for (at 80 the last frame's
+    # write writes a chunk, and 100 bytes less cut only the message indexes after it)
+    rec = McapRecording(tmp_path / "r.mcap", chunk_size=64 << 10, jpeg_quality=90)
     for i, rgb in enumerate(pictures(40, (150, 300))):
         rec.write(rgb, np.eye(3, 4) * 100, Tracks(i), timestamp=i / FPS)
     data = rec.partial.read_bytes()  # what a kill leaves: whole chunks, the last one pending
@@ -246,7 +282,8 @@ def test_a_failed_recording_write_keeps_its_whole_chunks(tmp_path, monkeypatch):
         return real(fd, data)
 
     monkeypatch.setattr(os, "write", full_disk)
-    rec = McapRecording(tmp_path / "r.mcap", chunk_size=64 << 10)
+    # JPEG quality 90: frame 20's messages fill a chunk, which its write then writes
+    rec = McapRecording(tmp_path / "r.mcap", chunk_size=64 << 10, jpeg_quality=90)
     with pytest.raises(OSError, match="No space left") as info:
         for i, rgb in enumerate(pictures(40, (150, 300))):
             full["on"] = i == 20

@@ -21,11 +21,13 @@ world <- camera      ``foxglove.FrameTransforms``    ``tf2_msgs/msg/TFMessage``
 detections as JSON   JSON (``jsonschema``)           ``std_msgs/msg/String``
 ===================  ==============================  ======================================
 
-A box is a cube entity in the ``camera`` frame (centre, yaw and size of the KITTI box; colour
-per track id, or per class without tracking), with a text label (id, class, score, speed) and
-metadata (id, class, score, velocity: over the ground with poses, else relative to the
-camera). Each scene update first deletes the previous frame's entities. Transforms (frame
-``world`` <- ``camera``) are written only for frames with a pose.
+The frame is a JPEG (quality :data:`JPEG_QUALITY` by default), or the bytes of the JPEG file
+it was read from (a sequence of JPEGs: nothing to encode). A box is a cube entity in the
+``camera`` frame (centre, yaw and size of the KITTI box; colour per track id, or per class
+without tracking), with a text label (id, class, score, speed) and metadata (id, class,
+score, velocity: over the ground with poses, else relative to the camera). Each scene update
+first deletes the previous frame's entities. Transforms (frame ``world`` <- ``camera``) are
+written only for frames with a pose.
 
 The file is chunked (:data:`CHUNK_BYTES`): a chunk goes to disk whole once it is full, and
 :meth:`McapRecording.close` writes the last chunk and the summary (index) at the end or after
@@ -58,7 +60,7 @@ from gac_jax.streams.ros2_msgdefs import msgdef
 
 PROFILES = ("foxglove", "ros2")
 CHUNK_BYTES = 1 << 20
-JPEG_QUALITY = 90
+JPEG_QUALITY = 80  # libjpeg's scale; 90 costs 12 % more CPU and 50 % more bytes
 TOPICS = {
     "foxglove": {
         "image": ("/camera/image", "foxglove.CompressedImage"),
@@ -123,6 +125,7 @@ class McapRecording:
       default_plane: (4,) ground plane of frames given none (e.g. the detector's level
         camera ``(0, -1, 0, camera_height)``), or None: no plane message for them.
       chunk_size: bytes of a chunk (the unit a killed writer's file is readable to).
+      jpeg_quality: of the frames' JPEG (1-100; a JPEG file's bytes are stored as they are).
 
     ``write`` raises an ``OSError`` naming the file when it cannot be written; the chunks
     written before stay readable. Use as a context manager, or call :meth:`close`.
@@ -134,11 +137,13 @@ class McapRecording:
         profile: str = "foxglove",
         default_plane=None,
         chunk_size: int = CHUNK_BYTES,
+        jpeg_quality: int = JPEG_QUALITY,
     ):
         from mcap.writer import CompressionType, Writer
 
         self.path = check_mcap_path(path, profile).absolute()
         self.profile = profile
+        self.jpeg_quality = int(jpeg_quality)
         self.default_plane = None if default_plane is None else np.asarray(default_plane)
         self.partial = partial_path(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -202,11 +207,12 @@ class McapRecording:
         plane=None,
         frame_id: str | None = None,
         record: dict | None = None,
+        jpeg: bytes | None = None,
     ) -> None:
         """Writes one frame.
 
         Args:
-          image: (H, W, 3) uint8 RGB frame (stored as JPEG).
+          image: (H, W, 3) uint8 RGB frame (stored as JPEG of ``jpeg_quality``).
           P2: (3, 4) its projection.
           detections: :class:`~gac_jax.api.Detections` or
             :class:`~gac_jax.tracking.TrackedObjects` (boxes in the camera frame).
@@ -216,11 +222,13 @@ class McapRecording:
           plane: (4,) ground plane (camera frame), or None: ``default_plane``.
           frame_id: the frame's name in the JSON (default: its number).
           record: the JSON record (default ``detections.to_dict()``).
+          jpeg: the bytes of the JPEG file ``image`` was read from
+            (:attr:`~gac_jax.streams.sources.Frame.jpeg`): stored as they are instead.
         """
         t0 = time.thread_time()
         ns = round(float(timestamp) * 1e9)
         h, w = image.shape[:2]
-        data = encode_jpeg(image)
+        data = encode_jpeg(image, self.jpeg_quality) if jpeg is None else jpeg
         t1 = time.thread_time()
         objects = detections.to_kitti_objects()
         ids = getattr(detections, "ids", None)
@@ -316,6 +324,7 @@ class McapResults:
             plane=frame.plane,
             frame_id=frame.frame_id,
             record=record or None,
+            jpeg=getattr(frame, "jpeg", None),
         )
 
     def close(self, complete: bool = True) -> Path | None:
