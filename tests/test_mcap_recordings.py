@@ -202,6 +202,27 @@ def whole_chunk_stamps(data: bytes, channel: int = 1) -> list[int]:
     return stamps
 
 
+def whole_chunks(data: bytes) -> tuple[int, dict[str, list[int]]]:
+    """``(whole chunks, {topic: log_time of its messages in them})`` of an MCAP file without a
+    summary, read as a killed run's file can be: the ``mcap`` stream reader, which stops at
+    the cut (the chunk that was being written), schemas and channels from the chunks."""
+    from mcap.stream_reader import StreamReader
+
+    chunks, topics, stamps = 0, {}, {}
+    with pytest.raises(Exception) as info:  # noqa: PT011 - the cut, whatever the reader says
+        for record in StreamReader(io.BytesIO(data), skip_magic=False, emit_chunks=True).records:
+            chunks += type(record).__name__ == "Chunk"
+    assert type(info.value).__name__ in ("EndOfFile", "error"), info.value
+    with pytest.raises(Exception) as info:  # noqa: PT011
+        for record in StreamReader(io.BytesIO(data), skip_magic=False).records:
+            if type(record).__name__ == "Channel":
+                topics[record.id] = record.topic
+            elif type(record).__name__ == "Message":
+                stamps.setdefault(topics[record.channel_id], []).append(record.log_time)
+    assert type(info.value).__name__ in ("EndOfFile", "error"), info.value
+    return chunks, stamps
+
+
 def field(message, name):
     return message[name] if isinstance(message, dict) else getattr(message, name)
 
@@ -305,7 +326,9 @@ def test_the_mp4_and_the_mcap_of_a_killed_stream_play_to_their_last_whole_part(
 ):
     """SIGKILL mid-stream (nothing can be finished): the hidden partial MP4 plays (PyAV and
     OpenCV) a prefix of at most as many frames as result files, and the hidden partial MCAP
-    reads back to its last whole chunk, frames in order."""
+    reads back to its last whole chunk: on every channel frames in order from the first, every
+    frame with all its channels but the last one read (its messages may go on in the chunk
+    that was cut), at least a frame per whole chunk."""
     make_video, calib = stream_input
     video = make_video("long.avi", 400, fps=10.0)
     out = tmp_path / "out"
@@ -327,6 +350,16 @@ def test_the_mp4_and_the_mcap_of_a_killed_stream_play_to_their_last_whole_part(
     stamps = whole_chunk_stamps((out / ".run.partial.mcap").read_bytes())
     assert 1 <= len(stamps) <= written
     assert stamps == [round(i / 10.0 * 1e9) for i in range(len(stamps))]
+    # every channel: frames from the first, one after another; all channels of every frame
+    # but the last read, whose messages the cut chunk may have held the rest of
+    chunks, topics = whole_chunks((out / ".run.partial.mcap").read_bytes())
+    order = [topic for topic, _ in TOPICS["foxglove"].values() if topic != "/tf"]  # no poses
+    assert chunks >= 1 and list(topics) == order
+    counts = [len(topics[topic]) for topic in order]
+    assert counts[0] >= chunks and counts == sorted(counts, reverse=True)
+    assert counts[0] - counts[-1] <= 1 and counts[0] == len(stamps)
+    for topic in order:
+        assert topics[topic] == stamps[: len(topics[topic])]
 
 
 def playable_frames(path) -> int:
