@@ -6,8 +6,8 @@ Written with the ``mcap`` library: protobuf messages of ``foxglove-schemas-proto
 (profile ``foxglove``) or CDR messages (profile ``ros2``, what rosbag2's MCAP storage plugin
 reads and ``ros2 bag play`` replays) of the definitions in :mod:`~gac_jax.streams.ros2_msgdefs`,
 encoded by :mod:`~gac_jax.streams.ros2_cdr` (the same bytes as ``mcap-ros2-support``'s
-serialiser, at a fifth of its cost). One message per frame on each topic (:data:`TOPICS`),
-stamped with the frame's time:
+serialiser, without its Python work per field). One message per frame on each topic
+(:data:`TOPICS`), stamped with the frame's time:
 
 ===================  ==============================  ======================================
 what                 ``foxglove``                    ``ros2``
@@ -34,7 +34,8 @@ The file is chunked (:data:`CHUNK_BYTES`): a chunk goes to disk whole once it is
 a stop signal. Every write is checked: after a failed write (a full disk) the file is cut
 back to its last whole record, kept as ``<name>.incomplete.mcap`` and raises an ``OSError``
 naming it; a killed writer leaves its hidden ``.<name>.partial.mcap``. Either holds every
-chunk written before: the ``mcap`` reader reads them in order (the file has no summary), and
+chunk written before: the ``mcap`` stream readers read them in order up to the cut (the file
+has no summary; a frame's messages may go on in the chunk that was cut), and the ``mcap`` CLI's
 ``mcap recover`` writes a file with a summary.
 """
 
@@ -60,7 +61,7 @@ from gac_jax.streams.ros2_msgdefs import msgdef
 
 PROFILES = ("foxglove", "ros2")
 CHUNK_BYTES = 1 << 20
-JPEG_QUALITY = 80  # libjpeg's scale; 90 costs 12 % more CPU and 50 % more bytes
+JPEG_QUALITY = 80  # 90: a fifth more CPU, half again the bytes (benchmarks/bench_mcap.py)
 TOPICS = {
     "foxglove": {
         "image": ("/camera/image", "foxglove.CompressedImage"),

@@ -7,8 +7,8 @@ a 4-byte encapsulation header ``00 01 00 00``; every primitive aligned to its ow
 counted from the end of that header; a string as a uint32 length (with its NUL), its UTF-8
 bytes and a NUL; a sequence as a uint32 count and its items; a fixed-size array as its items
 alone. Written here, with the fixed runs of float64 (poses, sizes, colours) packed at once,
-because a general serialiser walks every field in Python: a scene of ten boxes cost it about
-1 core-ms per frame.
+because mcap-ros2-support's general serialiser walks every field of every box in Python
+(``benchmarks/bench_mcap.py`` times both profiles).
 """
 
 from __future__ import annotations
