@@ -106,6 +106,73 @@ def test_an_mcap_recording_reads_back(tmp_path, profile):
     check_messages(profile, seen, P2, pose, n)
 
 
+def test_the_ros2_cdr_is_mcap_ros2_supports(tmp_path):
+    """The recorder's own CDR encoder (:mod:`gac_jax.streams.ros2_cdr`) writes every message
+    of the ros2 profile byte for byte as mcap-ros2-support's serialiser does: frames with
+    0-3 boxes, with and without poses and velocities, strings of every length mod 8 (the
+    alignment after them)."""
+    from mcap_ros2._dynamic import serialize_dynamic
+
+    from gac_jax.streams import recording_scene as scene
+    from gac_jax.streams.recording_messages import ros2_messages
+    from gac_jax.streams.ros2_cdr import encode
+    from gac_jax.streams.ros2_msgdefs import msgdef
+
+    serialisers = {}
+    for _, schema in TOPICS["ros2"].values():
+        serialisers[schema] = serialize_dynamic(schema, msgdef(schema))[schema]
+    P2 = np.array([[700.0, 0, 80, 45.0], [0, 700.0, 37, 0.2], [0, 0, 1, 0.003]])
+    for i in range(8):
+        tracks = Tracks(i)
+        k = i % 3 + 1
+        objects = tracks.objects.select(np.arange(2) < k)
+        objects = objects.replace(type=np.array(["Car" + "x" * i, "P"][:k]))
+        velocities = tracks.velocities[:k] if i % 2 else None
+        ids = tracks.ids[:k] if i % 4 < 2 else None
+        entities = scene.box_entities(objects, ids, velocities, over_ground=i % 2 == 0)
+        pose = poses(8)[i] if i % 2 else None
+        plane = (0.01 * i, -1.0, 0.0, 1.65) if i != 3 else None
+        image = bytes(range(i * 3))
+        for key, message in ros2_messages(i * 123_456_789, image, (48 + i, 80), P2, entities,
+                                          pose, plane, "{}" + "x" * i):  # fmt: skip
+            schema = TOPICS["ros2"][key][1]
+            assert encode(schema, message) == serialisers[schema](message), (key, i)
+
+
+def test_frames_of_jpeg_files_are_stored_as_they_are(tmp_path):
+    """A sequence of JPEG files: each frame carries its file's bytes and the recording's
+    images are those bytes, not a JPEG encoded again; a PNG's frame carries none and its
+    image is a JPEG of the picture."""
+    from mcap.reader import make_reader
+
+    from gac_jax.data.files import write_png
+    from gac_jax.streams.mcap_recording import McapResults
+    from gac_jax.streams.sources import SequenceSource
+
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    rgb = pictures(3)
+    files = [cv2.imencode(".jpg", image[..., ::-1])[1].tobytes() for image in rgb[:2]]
+    for i, data in enumerate(files):
+        (folder / f"{i:06d}.jpg").write_bytes(data)
+    write_png(folder / "000002.png", rgb[2])
+    (folder / "calib.txt").write_text("P2: 700 0 80 45 0 700 37 0.2 0 0 1 0.003\n")
+    source = SequenceSource(folder)
+    frames = [source.read() for _ in range(3)]
+    assert [f.jpeg for f in frames] == [*files, None]
+    with McapRecording(tmp_path / "r.mcap") as rec:
+        results = McapResults(rec, FPS)
+        for i, frame in enumerate(frames):
+            results.write_frame(frame, Tracks(i), None)
+    with open(tmp_path / "r.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=decoders("foxglove"))
+        images = [m for _, c, _, m in reader.iter_decoded_messages() if c.topic == "/camera/image"]
+    assert [im.data for im in images[:2]] == files and images[2].data not in files
+    assert {im.format for im in images} == {"jpeg"}
+    decoded = cv2.imdecode(np.frombuffer(images[2].data, np.uint8), cv2.IMREAD_COLOR)
+    assert psnr(decoded[..., ::-1], rgb[2]) > 25
+
+
 def decoders(profile):
     from mcap.decoder import DecoderFactory as Factory
 
@@ -133,6 +200,27 @@ def whole_chunk_stamps(data: bytes, channel: int = 1) -> list[int]:
                 stamps.append(record.log_time)
     assert type(info.value).__name__ in ("EndOfFile", "error"), info.value
     return stamps
+
+
+def whole_chunks(data: bytes) -> tuple[int, dict[str, list[int]]]:
+    """``(whole chunks, {topic: log_time of its messages in them})`` of an MCAP file without a
+    summary, read as a killed run's file can be: the ``mcap`` stream reader, which stops at
+    the cut (the chunk that was being written), schemas and channels from the chunks."""
+    from mcap.stream_reader import StreamReader
+
+    chunks, topics, stamps = 0, {}, {}
+    with pytest.raises(Exception) as info:  # noqa: PT011 - the cut, whatever the reader says
+        for record in StreamReader(io.BytesIO(data), skip_magic=False, emit_chunks=True).records:
+            chunks += type(record).__name__ == "Chunk"
+    assert type(info.value).__name__ in ("EndOfFile", "error"), info.value
+    with pytest.raises(Exception) as info:  # noqa: PT011
+        for record in StreamReader(io.BytesIO(data), skip_magic=False).records:
+            if type(record).__name__ == "Channel":
+                topics[record.id] = record.topic
+            elif type(record).__name__ == "Message":
+                stamps.setdefault(topics[record.channel_id], []).append(record.log_time)
+    assert type(info.value).__name__ in ("EndOfFile", "error"), info.value
+    return chunks, stamps
 
 
 def field(message, name):
@@ -190,7 +278,9 @@ def test_a_killed_recording_reads_back_to_its_last_chunk(tmp_path):
     """The hidden partial of a writer that never closed (a kill), cut inside a chunk: the
     ``mcap`` stream reader gives every message of the whole chunks, in order, then stops at
     the cut (no summary: the seeking reader cannot open it, ``mcap recover`` repairs it)."""
-    rec = McapRecording(tmp_path / "r.mcap", chunk_size=64 << 10)
+    # JPEG quality 90: the chunks end where this test was laid out for (at 80 the last frame's
+    # write writes a chunk, and 100 bytes less cut only the message indexes after it)
+    rec = McapRecording(tmp_path / "r.mcap", chunk_size=64 << 10, jpeg_quality=90)
     for i, rgb in enumerate(pictures(40, (150, 300))):
         rec.write(rgb, np.eye(3, 4) * 100, Tracks(i), timestamp=i / FPS)
     data = rec.partial.read_bytes()  # what a kill leaves: whole chunks, the last one pending
@@ -213,7 +303,8 @@ def test_a_failed_recording_write_keeps_its_whole_chunks(tmp_path, monkeypatch):
         return real(fd, data)
 
     monkeypatch.setattr(os, "write", full_disk)
-    rec = McapRecording(tmp_path / "r.mcap", chunk_size=64 << 10)
+    # JPEG quality 90: frame 20's messages fill a chunk, which its write then writes
+    rec = McapRecording(tmp_path / "r.mcap", chunk_size=64 << 10, jpeg_quality=90)
     with pytest.raises(OSError, match="No space left") as info:
         for i, rgb in enumerate(pictures(40, (150, 300))):
             full["on"] = i == 20
@@ -235,7 +326,9 @@ def test_the_mp4_and_the_mcap_of_a_killed_stream_play_to_their_last_whole_part(
 ):
     """SIGKILL mid-stream (nothing can be finished): the hidden partial MP4 plays (PyAV and
     OpenCV) a prefix of at most as many frames as result files, and the hidden partial MCAP
-    reads back to its last whole chunk, frames in order."""
+    reads back to its last whole chunk: on every channel frames in order from the first, every
+    frame with all its channels but the last one read (its messages may go on in the chunk
+    that was cut), at least a frame per whole chunk."""
     make_video, calib = stream_input
     video = make_video("long.avi", 400, fps=10.0)
     out = tmp_path / "out"
@@ -257,6 +350,16 @@ def test_the_mp4_and_the_mcap_of_a_killed_stream_play_to_their_last_whole_part(
     stamps = whole_chunk_stamps((out / ".run.partial.mcap").read_bytes())
     assert 1 <= len(stamps) <= written
     assert stamps == [round(i / 10.0 * 1e9) for i in range(len(stamps))]
+    # every channel: frames from the first, one after another; all channels of every frame
+    # but the last read, whose messages the cut chunk may have held the rest of
+    chunks, topics = whole_chunks((out / ".run.partial.mcap").read_bytes())
+    order = [topic for topic, _ in TOPICS["foxglove"].values() if topic != "/tf"]  # no poses
+    assert chunks >= 1 and list(topics) == order
+    counts = [len(topics[topic]) for topic in order]
+    assert counts[0] >= chunks and counts == sorted(counts, reverse=True)
+    assert counts[0] - counts[-1] <= 1 and counts[0] == len(stamps)
+    for topic in order:
+        assert topics[topic] == stamps[: len(topics[topic])]
 
 
 def playable_frames(path) -> int:

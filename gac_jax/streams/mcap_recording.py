@@ -2,11 +2,12 @@
 :class:`McapRecording` in a loop of :class:`~gac_jax.api.Detector3D` /
 :class:`~gac_jax.api.Tracker3D` results).
 
-Written with the ``mcap`` library; the messages are serialised by the maintained libraries,
-not here: protobuf with ``foxglove-schemas-protobuf`` (profile ``foxglove``) or CDR with
-``mcap-ros2-support`` (profile ``ros2``, what rosbag2's MCAP storage plugin reads and
-``ros2 bag play`` replays). One message per frame on each topic (:data:`TOPICS`), stamped with
-the frame's time:
+Written with the ``mcap`` library: protobuf messages of ``foxglove-schemas-protobuf``
+(profile ``foxglove``) or CDR messages (profile ``ros2``, what rosbag2's MCAP storage plugin
+reads and ``ros2 bag play`` replays) of the definitions in :mod:`~gac_jax.streams.ros2_msgdefs`,
+encoded by :mod:`~gac_jax.streams.ros2_cdr` (the same bytes as ``mcap-ros2-support``'s
+serialiser, without its Python work per field). One message per frame on each topic
+(:data:`TOPICS`), stamped with the frame's time:
 
 ===================  ==============================  ======================================
 what                 ``foxglove``                    ``ros2``
@@ -20,18 +21,21 @@ world <- camera      ``foxglove.FrameTransforms``    ``tf2_msgs/msg/TFMessage``
 detections as JSON   JSON (``jsonschema``)           ``std_msgs/msg/String``
 ===================  ==============================  ======================================
 
-A box is a cube entity in the ``camera`` frame (centre, yaw and size of the KITTI box; colour
-per track id, or per class without tracking), with a text label (id, class, score, speed) and
-metadata (id, class, score, velocity: over the ground with poses, else relative to the
-camera). Each scene update first deletes the previous frame's entities. Transforms (frame
-``world`` <- ``camera``) are written only for frames with a pose.
+The frame is a JPEG (quality :data:`JPEG_QUALITY` by default), or the bytes of the JPEG file
+it was read from (a sequence of JPEGs: nothing to encode). A box is a cube entity in the
+``camera`` frame (centre, yaw and size of the KITTI box; colour per track id, or per class
+without tracking), with a text label (id, class, score, speed) and metadata (id, class,
+score, velocity: over the ground with poses, else relative to the camera). Each scene update
+first deletes the previous frame's entities. Transforms (frame ``world`` <- ``camera``) are
+written only for frames with a pose.
 
 The file is chunked (:data:`CHUNK_BYTES`): a chunk goes to disk whole once it is full, and
 :meth:`McapRecording.close` writes the last chunk and the summary (index) at the end or after
 a stop signal. Every write is checked: after a failed write (a full disk) the file is cut
 back to its last whole record, kept as ``<name>.incomplete.mcap`` and raises an ``OSError``
 naming it; a killed writer leaves its hidden ``.<name>.partial.mcap``. Either holds every
-chunk written before: the ``mcap`` reader reads them in order (the file has no summary), and
+chunk written before: the ``mcap`` stream readers read them in order up to the cut (the file
+has no summary; a frame's messages may go on in the chunk that was cut), and the ``mcap`` CLI's
 ``mcap recover`` writes a file with a summary.
 """
 
@@ -49,6 +53,7 @@ import numpy as np
 
 from gac_jax.data.files import KittiFormatError
 from gac_jax.streams import recording_scene as scene
+from gac_jax.streams import ros2_cdr
 from gac_jax.streams.checked_file import CheckedFile
 from gac_jax.streams.outputs import _keep, _plain, partial_path
 from gac_jax.streams.recording_messages import foxglove_messages, protobuf_class, ros2_messages
@@ -56,7 +61,7 @@ from gac_jax.streams.ros2_msgdefs import msgdef
 
 PROFILES = ("foxglove", "ros2")
 CHUNK_BYTES = 1 << 20
-JPEG_QUALITY = 90
+JPEG_QUALITY = 80  # 90: a fifth more CPU, half again the bytes (benchmarks/bench_mcap.py)
 TOPICS = {
     "foxglove": {
         "image": ("/camera/image", "foxglove.CompressedImage"),
@@ -88,6 +93,16 @@ JSON_SCHEMA = {
 }
 
 
+def encode_jpeg(image: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
+    """JPEG bytes of an (H, W, 3) uint8 RGB image (OpenCV's libjpeg-turbo, 4:2:0)."""
+    ok, jpeg = cv2.imencode(
+        ".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality]
+    )
+    if not ok:
+        raise ValueError(f"cannot encode a {image.shape[1]}x{image.shape[0]} frame as JPEG")
+    return jpeg.tobytes()
+
+
 def check_mcap_path(path: str | os.PathLike, profile: str = "foxglove") -> Path:
     """``path`` as the recording's file, or :class:`KittiFormatError` naming the problem."""
     path = Path(path)
@@ -110,6 +125,8 @@ class McapRecording:
       profile: ``foxglove`` (protobuf) or ``ros2`` (CDR).
       default_plane: (4,) ground plane of frames given none (e.g. the detector's level
         camera ``(0, -1, 0, camera_height)``), or None: no plane message for them.
+      chunk_size: bytes of a chunk (the unit a killed writer's file is readable to).
+      jpeg_quality: of the frames' JPEG (1-100; a JPEG file's bytes are stored as they are).
 
     ``write`` raises an ``OSError`` naming the file when it cannot be written; the chunks
     written before stay readable. Use as a context manager, or call :meth:`close`.
@@ -121,42 +138,41 @@ class McapRecording:
         profile: str = "foxglove",
         default_plane=None,
         chunk_size: int = CHUNK_BYTES,
+        jpeg_quality: int = JPEG_QUALITY,
     ):
         from mcap.writer import CompressionType, Writer
 
         self.path = check_mcap_path(path, profile).absolute()
         self.profile = profile
+        self.jpeg_quality = int(jpeg_quality)
         self.default_plane = None if default_plane is None else np.asarray(default_plane)
         self.partial = partial_path(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.frames = 0
         self.kept: Path | None = None
         self.cpu_s = 0.0  # CPU seconds spent in write()
+        # of them: the JPEG; the entities, JSON and messages; serialisation and the chunk
+        self.cpu_parts = {"image": 0.0, "messages": 0.0, "write": 0.0}
         self._closed = False
         self._file = CheckedFile(self.partial, self.path, mark_writes=True)
-        self._channels: dict[str, object] = {}  # channel id (foxglove) or schema (ros2)
+        self._channels: dict[str, int] = {}  # channel ids
         try:
-            if profile == "ros2":  # mcap-ros2-support's writer: CDR from the definitions
-                from mcap_ros2.writer import Writer as Ros2Writer
-
-                self._ros2 = Ros2Writer(self._file, chunk_size, CompressionType.NONE)
-                self._writer = None
-            else:
-                self._ros2 = None
-                self._writer = Writer(self._file, chunk_size, CompressionType.NONE)
-                self._writer.start(profile="", library="gac_jax")
+            self._writer = Writer(self._file, chunk_size, CompressionType.NONE)
+            self._writer.start(profile="ros2" if profile == "ros2" else "", library="gac_jax")
         except OSError:
             self.close(False)
             raise
 
     # ------------------------------------------------------------------ channels
 
-    def _channel(self, key: str):
+    def _channel(self, key: str) -> int:
         if key in self._channels:
             return self._channels[key]
         topic, schema = TOPICS[self.profile][key]
-        if self._ros2 is not None:
-            channel = self._ros2.register_msgdef(schema, msgdef(schema))
+        if self.profile == "ros2":  # rosbag2's encodings: the definitions, CDR messages
+            data = msgdef(schema).encode()
+            schema_id = self._writer.register_schema(schema, "ros2msg", data)
+            channel = self._writer.register_channel(topic, "cdr", schema_id)
         elif key == "json":
             data = json.dumps(JSON_SCHEMA).encode()
             schema_id = self._writer.register_schema(schema, "jsonschema", data)
@@ -171,11 +187,10 @@ class McapRecording:
 
     def _add(self, key: str, message, ns: int) -> None:
         channel = self._channel(key)
-        if self._ros2 is not None:
-            topic = TOPICS[self.profile][key][0]
-            self._ros2.write_message(topic, channel, message, ns, ns, self.frames)
-            return
-        data = message.encode() if key == "json" else message.SerializeToString()
+        if self.profile == "ros2":
+            data = ros2_cdr.encode(TOPICS["ros2"][key][1], message)
+        else:
+            data = message.encode() if key == "json" else message.SerializeToString()
         self._writer.add_message(
             channel, log_time=ns, data=data, publish_time=ns, sequence=self.frames
         )
@@ -193,11 +208,12 @@ class McapRecording:
         plane=None,
         frame_id: str | None = None,
         record: dict | None = None,
+        jpeg: bytes | None = None,
     ) -> None:
         """Writes one frame.
 
         Args:
-          image: (H, W, 3) uint8 RGB frame (stored as JPEG).
+          image: (H, W, 3) uint8 RGB frame (stored as JPEG of ``jpeg_quality``).
           P2: (3, 4) its projection.
           detections: :class:`~gac_jax.api.Detections` or
             :class:`~gac_jax.tracking.TrackedObjects` (boxes in the camera frame).
@@ -207,19 +223,18 @@ class McapRecording:
           plane: (4,) ground plane (camera frame), or None: ``default_plane``.
           frame_id: the frame's name in the JSON (default: its number).
           record: the JSON record (default ``detections.to_dict()``).
+          jpeg: the bytes of the JPEG file ``image`` was read from
+            (:attr:`~gac_jax.streams.sources.Frame.jpeg`): stored as they are instead.
         """
         t0 = time.thread_time()
         ns = round(float(timestamp) * 1e9)
+        h, w = image.shape[:2]
+        data = encode_jpeg(image, self.jpeg_quality) if jpeg is None else jpeg
+        t1 = time.thread_time()
         objects = detections.to_kitti_objects()
         ids = getattr(detections, "ids", None)
         velocities = getattr(detections, "velocities", None)
         entities = scene.box_entities(objects, ids, velocities, over_ground=pose is not None)
-        h, w = image.shape[:2]
-        ok, jpeg = cv2.imencode(
-            ".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]
-        )
-        if not ok:
-            raise ValueError(f"cannot encode a {w}x{h} frame as JPEG")
         plane = self.default_plane if plane is None else plane
         record = detections.to_dict() if record is None else record
         text = json.dumps(
@@ -227,7 +242,8 @@ class McapRecording:
             default=_plain,
         )
         build = ros2_messages if self.profile == "ros2" else foxglove_messages
-        messages = build(ns, jpeg.tobytes(), (h, w), P2, entities, pose, plane, text)
+        messages = build(ns, data, (h, w), P2, entities, pose, plane, text)
+        t2 = time.thread_time()
         try:
             for key, message in messages:
                 self._add(key, message, ns)
@@ -235,7 +251,10 @@ class McapRecording:
             failure = OSError(e.errno or errno.EIO, e.strerror or "write failed", str(self.path))
             raise self._file.error or failure from None
         self.frames += 1
-        self.cpu_s += time.thread_time() - t0
+        t3 = time.thread_time()
+        for part, seconds in zip(self.cpu_parts, (t1 - t0, t2 - t1, t3 - t2), strict=True):
+            self.cpu_parts[part] += seconds
+        self.cpu_s += t3 - t0
 
     def close(self, complete: bool = True) -> Path | None:
         """Writes the last chunk and the summary, closes and renames the file into place
@@ -248,7 +267,7 @@ class McapRecording:
         failed_before = self._file.error is not None  # raised by write() already
         if not failed_before:
             with contextlib.suppress(OSError):  # kept as the file's error
-                (self._ros2 or self._writer).finish()
+                self._writer.finish()
         self._file.close()  # a failed flush to disk is kept as its error too
         error = None if failed_before else self._file.error
         complete = complete and self._file.error is None
@@ -306,6 +325,7 @@ class McapResults:
             plane=frame.plane,
             frame_id=frame.frame_id,
             record=record or None,
+            jpeg=getattr(frame, "jpeg", None),
         )
 
     def close(self, complete: bool = True) -> Path | None:

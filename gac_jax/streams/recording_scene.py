@@ -11,6 +11,8 @@ into Python values, so that either message encoding takes it as it is.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from gac_jax.evaluation.track_pictures import track_color
@@ -20,13 +22,6 @@ PLANE_PATCH = (40.0, 0.02, 80.0)  # metres: the ground patch's width, thickness,
 PLANE_AHEAD = 30.0  # metres ahead of the camera: the patch's centre
 PLANE_COLOR = (0.5, 0.5, 0.5, 0.25)
 LABEL_ABOVE = 0.3  # metres between a box's top and its label
-
-
-def yaw_quaternion(ry: np.ndarray) -> np.ndarray:
-    """(N, 4) quaternions of rotations by ``ry`` (N,) about the camera's y axis."""
-    ry = np.asarray(ry, np.float64).reshape(-1)
-    zeros = np.zeros_like(ry)
-    return np.stack([zeros, np.sin(ry / 2), zeros, np.cos(ry / 2)], axis=-1)
 
 
 def matrix_quaternion(R: np.ndarray) -> np.ndarray:
@@ -88,32 +83,45 @@ def box_entities(objects, ids=None, velocities=None, over_ground: bool = False) 
       velocities: (N, 3) m/s in camera axes (NaN: unknown), or None.
       over_ground: the velocities are over the ground (ego motion removed), else relative to
         the camera.
+
+    The arithmetic is done on the (N, ...) arrays at once and the values turned into Python
+    numbers together; the colour dictionaries are shared between calls (read-only).
     """
     n = len(objects)
     dims = np.asarray(objects.dimensions, np.float64).reshape(n, 3)
     loc = np.asarray(objects.location, np.float64).reshape(n, 3)
-    centre = loc - np.stack([np.zeros(n), dims[:, 0] / 2, np.zeros(n)], axis=-1)
-    quats = yaw_quaternion(objects.rotation_y)
-    label_at = loc - np.stack([np.zeros(n), dims[:, 0] + LABEL_ABOVE, np.zeros(n)], axis=-1)
+    half = np.asarray(objects.rotation_y, np.float64).reshape(n) / 2
+    x, z = loc[:, 0].tolist(), loc[:, 2].tolist()
+    centre_y = (loc[:, 1] - dims[:, 0] / 2).tolist()
+    label_y = (loc[:, 1] - dims[:, 0] - LABEL_ABOVE).tolist()
+    sin, cos = np.sin(half).tolist(), np.cos(half).tolist()
+    h, w, l = dims.T.tolist()
+    names = [str(name) for name in objects.type]
+    scores = np.asarray(objects.score, np.float64).reshape(n).tolist()
+    tracks = [None] * n if ids is None else np.asarray(ids, np.int64).reshape(n).tolist()
+    moving, speeds = [False] * n, [0.0] * n
+    if velocities is not None and n:
+        velocities = np.asarray(velocities, np.float64).reshape(n, 3)
+        moving = np.all(np.isfinite(velocities), axis=1).tolist()
+        speeds = np.hypot(velocities[:, 0], velocities[:, 2]).tolist()
+        velocities = velocities.tolist()
+    frame = "over the ground" if over_ground else "relative to the camera"
     entities = []
     for i in range(n):
-        name, score = str(objects.type[i]), float(objects.score[i])
-        track = None if ids is None else int(ids[i])
-        rgb = class_color(name) if track is None else track_color(track)
+        name, score, track = names[i], scores[i], tracks[i]
+        fill, line = _colors(name, track)
         text = f"{name} {score:.2f}" if track is None else f"#{track} {name} {score:.2f}"
         metadata = [("class", name), ("score", f"{score:.4f}")]
         velocity = None
         if track is not None:
             metadata.insert(0, ("id", str(track)))
-        if velocities is not None and np.all(np.isfinite(velocities[i])):
-            velocity = [float(v) for v in velocities[i]]
-            speed = float(np.linalg.norm(np.asarray(velocity)[[0, 2]]))
-            frame = "over the ground" if over_ground else "relative to the camera"
+        if moving[i]:
+            velocity = velocities[i]
             metadata += [
                 ("velocity", " ".join(f"{v:.3f}" for v in velocity) + f" m/s ({frame})"),
-                ("speed", f"{speed:.2f} m/s"),
+                ("speed", f"{speeds[i]:.2f} m/s"),
             ]
-            text += f" {speed:.1f} m/s" + ("" if over_ground else " rel.")
+            text += f" {speeds[i]:.1f} m/s" + ("" if over_ground else " rel.")
         entities.append(
             {
                 "id": f"track {track}" if track is not None else f"box {i}",
@@ -122,27 +130,45 @@ def box_entities(objects, ids=None, velocities=None, over_ground: bool = False) 
                 "track_id": track,
                 "velocity": velocity,
                 "cube": {
-                    "pose": pose_dict(centre[i], quats[i]),
-                    "size": {
-                        "x": float(dims[i, 2]),
-                        "y": float(dims[i, 0]),
-                        "z": float(dims[i, 1]),
+                    "pose": {
+                        "position": {"x": x[i], "y": centre_y[i], "z": z[i]},
+                        "orientation": {"x": 0.0, "y": sin[i], "z": 0.0, "w": cos[i]},
                     },
-                    "color": color_dict(rgb, 0.5),
+                    "size": {"x": l[i], "y": h[i], "z": w[i]},
+                    "color": fill,
                 },
-                "label": {"pose": pose_dict(label_at[i], (0, 0, 0, 1)), "text": text},
-                "color": color_dict(rgb),
+                "label": {
+                    "pose": {
+                        "position": {"x": x[i], "y": label_y[i], "z": z[i]},
+                        "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                    },
+                    "text": text,
+                },
+                "color": line,
                 "metadata": metadata,
             }
         )
     return entities
 
 
+@functools.lru_cache(maxsize=4096)
+def _colors(name: str, track: int | None) -> tuple[dict, dict]:
+    """The cube's (half transparent) and the label's colour of a box (shared, read-only)."""
+    rgb = class_color(name) if track is None else track_color(track)
+    return color_dict(rgb, 0.5), color_dict(rgb)
+
+
 def plane_patch(plane: np.ndarray) -> dict:
     """The ground plane ``(a, b, c, d)`` (``a x + b y + c z + d = 0``, camera frame, normal
     up) as a flat cube: ``{"pose", "size", "color"}``, centred under the point
-    :data:`PLANE_AHEAD` metres ahead, its y axis along the normal."""
-    plane = np.asarray(plane, np.float64).reshape(4)
+    :data:`PLANE_AHEAD` metres ahead, its y axis along the normal. Shared between calls with
+    the same plane (read-only)."""
+    return _plane_patch(tuple(np.asarray(plane, np.float64).reshape(4).tolist()))
+
+
+@functools.lru_cache(maxsize=64)
+def _plane_patch(plane: tuple[float, float, float, float]) -> dict:
+    plane = np.asarray(plane)
     normal = plane[:3] / np.linalg.norm(plane[:3])
     d = plane[3] / np.linalg.norm(plane[:3])
     ahead = np.array([0.0, 0.0, PLANE_AHEAD])

@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from gac_jax.api.inputs import InputError, check_fits, check_projection
-from gac_jax.data.files import KittiFormatError, read_image
+from gac_jax.data.files import KittiFormatError, decode_image, read_bytes
 from gac_jax.data.kitti import read_plane
 from gac_jax.data.kitti_calib import read_calib
 from gac_jax.streams.damaged_frames import DamagedFrames
@@ -78,6 +78,8 @@ class Frame:
         a KITTI raw drive's ``timestamps.txt``, else a sequence's frame rate, a camera's read
         times): the tracker's and the annotated video's timing. None: unknown (``index / fps``
         is assumed).
+      jpeg: the bytes of the JPEG file the image was read from (an MCAP recording stores
+        them as they are), or None.
     """
 
     index: int
@@ -87,6 +89,7 @@ class Frame:
     plane: np.ndarray | None
     t_read: float
     time: float | None = None
+    jpeg: bytes | None = None
 
 
 def load_projection(path: str | os.PathLike, camera: int = 2) -> np.ndarray:
@@ -426,18 +429,19 @@ class SequenceSource:
         path = self.planes_dir / f"{image.stem}.txt"
         return read_plane(path) if path.is_file() else None
 
-    def _next_image(self) -> tuple[int, np.ndarray] | None:
-        """``(index, image)`` of the next image that can be read (the others are skipped);
-        None at the end."""
+    def _next_image(self) -> tuple[int, np.ndarray, bytes | None] | None:
+        """``(index, image, the file's bytes if a JPEG)`` of the next image that can be read
+        (the others are skipped); None at the end."""
         while self.index < len(self.images):
             i, self.index = self.index, self.index + 1
             try:
-                image = read_image(self.images[i])
+                data = read_bytes(self.images[i], "image")
+                image = decode_image(data, self.images[i])
             except KittiFormatError as e:
                 self.damaged.skip(self.images[i].name, f"cannot be read ({e.problem})")
                 continue
             self.damaged.good()
-            return i, image
+            return i, image, data if data[:3] == b"\xff\xd8\xff" else None
         return None
 
     def read(self) -> Frame | None:
@@ -445,11 +449,12 @@ class SequenceSource:
         item, self._pending = self._pending or self._next_image(), None
         if item is None:
             return None
-        i, image = item
+        i, image, jpeg = item
         path = self.images[i]
         _check_size(image, self.size, os.fspath(path), "the first image of the sequence is")
         when = i / self.fps if self.times is None else float(self.times[i])
-        return Frame(i, path.stem, image, self.P2, self.frame_plane(path), t0, when)
+        plane = self.frame_plane(path)
+        return Frame(i, path.stem, image, self.P2, plane, t0, when, jpeg)
 
     def check_complete(self) -> None:
         pass
