@@ -106,39 +106,6 @@ def test_an_mcap_recording_reads_back(tmp_path, profile):
     check_messages(profile, seen, P2, pose, n)
 
 
-def test_the_ros2_cdr_is_mcap_ros2_supports(tmp_path):
-    """The recorder's own CDR encoder (:mod:`gac_jax.streams.ros2_cdr`) writes every message
-    of the ros2 profile byte for byte as mcap-ros2-support's serialiser does: frames with
-    0-3 boxes, with and without poses and velocities, strings of every length mod 8 (the
-    alignment after them)."""
-    from mcap_ros2._dynamic import serialize_dynamic
-
-    from gac_jax.streams import recording_scene as scene
-    from gac_jax.streams.recording_messages import ros2_messages
-    from gac_jax.streams.ros2_cdr import encode
-    from gac_jax.streams.ros2_msgdefs import msgdef
-
-    serialisers = {}
-    for _, schema in TOPICS["ros2"].values():
-        serialisers[schema] = serialize_dynamic(schema, msgdef(schema))[schema]
-    P2 = np.array([[700.0, 0, 80, 45.0], [0, 700.0, 37, 0.2], [0, 0, 1, 0.003]])
-    for i in range(8):
-        tracks = Tracks(i)
-        k = i % 3 + 1
-        objects = tracks.objects.select(np.arange(2) < k)
-        objects = objects.replace(type=np.array(["Car" + "x" * i, "P"][:k]))
-        velocities = tracks.velocities[:k] if i % 2 else None
-        ids = tracks.ids[:k] if i % 4 < 2 else None
-        entities = scene.box_entities(objects, ids, velocities, over_ground=i % 2 == 0)
-        pose = poses(8)[i] if i % 2 else None
-        plane = (0.01 * i, -1.0, 0.0, 1.65) if i != 3 else None
-        image = bytes(range(i * 3))
-        for key, message in ros2_messages(i * 123_456_789, image, (48 + i, 80), P2, entities,
-                                          pose, plane, "{}" + "x" * i):  # fmt: skip
-            schema = TOPICS["ros2"][key][1]
-            assert encode(schema, message) == serialisers[schema](message), (key, i)
-
-
 def test_frames_of_jpeg_files_are_stored_as_they_are(tmp_path):
     """A sequence of JPEG files: each frame carries its file's bytes and the recording's
     images are those bytes, not a JPEG encoded again; a PNG's frame carries none and its

@@ -5,9 +5,8 @@
 Written with the ``mcap`` library: protobuf messages of ``foxglove-schemas-protobuf``
 (profile ``foxglove``) or CDR messages (profile ``ros2``, what rosbag2's MCAP storage plugin
 reads and ``ros2 bag play`` replays) of the definitions in :mod:`~gac_jax.streams.ros2_msgdefs`,
-encoded by :mod:`~gac_jax.streams.ros2_cdr` (the same bytes as ``mcap-ros2-support``'s
-serialiser, without its Python work per field). One message per frame on each topic
-(:data:`TOPICS`), stamped with the frame's time:
+serialised by ``mcap-ros2-support`` (no serialiser of our own). One message per frame on each
+topic (:data:`TOPICS`), stamped with the frame's time:
 
 ===================  ==============================  ======================================
 what                 ``foxglove``                    ``ros2``
@@ -53,7 +52,6 @@ import numpy as np
 
 from gac_jax.data.files import KittiFormatError
 from gac_jax.streams import recording_scene as scene
-from gac_jax.streams import ros2_cdr
 from gac_jax.streams.checked_file import CheckedFile
 from gac_jax.streams.outputs import _keep, _plain, partial_path
 from gac_jax.streams.recording_messages import foxglove_messages, protobuf_class, ros2_messages
@@ -156,6 +154,7 @@ class McapRecording:
         self._closed = False
         self._file = CheckedFile(self.partial, self.path, mark_writes=True)
         self._channels: dict[str, int] = {}  # channel ids
+        self._encoders: dict[str, object] = {}  # ros2: mcap-ros2-support's CDR encoder per key
         try:
             self._writer = Writer(self._file, chunk_size, CompressionType.NONE)
             self._writer.start(profile="ros2" if profile == "ros2" else "", library="gac_jax")
@@ -170,8 +169,11 @@ class McapRecording:
             return self._channels[key]
         topic, schema = TOPICS[self.profile][key]
         if self.profile == "ros2":  # rosbag2's encodings: the definitions, CDR messages
-            data = msgdef(schema).encode()
-            schema_id = self._writer.register_schema(schema, "ros2msg", data)
+            from mcap_ros2._dynamic import serialize_dynamic
+
+            text = msgdef(schema)
+            self._encoders[key] = serialize_dynamic(schema, text)[schema]
+            schema_id = self._writer.register_schema(schema, "ros2msg", text.encode())
             channel = self._writer.register_channel(topic, "cdr", schema_id)
         elif key == "json":
             data = json.dumps(JSON_SCHEMA).encode()
@@ -188,7 +190,7 @@ class McapRecording:
     def _add(self, key: str, message, ns: int) -> None:
         channel = self._channel(key)
         if self.profile == "ros2":
-            data = ros2_cdr.encode(TOPICS["ros2"][key][1], message)
+            data = self._encoders[key](message)
         else:
             data = message.encode() if key == "json" else message.SerializeToString()
         self._writer.add_message(
