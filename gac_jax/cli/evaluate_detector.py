@@ -43,8 +43,8 @@ from gac_jax.deploy.runtime_choice import (
     run_suffix,
     use_runtime,
 )
+from gac_jax.drawing.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.ap_table import format_table
-from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
 from gac_jax.trained.detector import LoadedDetector, evaluator_for, load_detector
 
 # imported from here by tests and benchmarks (explicit re-exports)
