@@ -12,6 +12,7 @@ the layers below it:
     builders    builders/ (config -> model, anchors, priors, transforms, evaluators)
     runs        trainers/, trained/ (a trained model from a run folder or converted weights)
     deploy      deploy/ (ONNX export, ONNX Runtime / OpenVINO)
+    guard       guard/ (the accuracy guard: its statistics, rules and verdicts on exports)
     api         api/ (the inference API: Detector3D, DepthPredictor)
     streams     streams/ (video files, cameras, image sequences through a detector)
     cli         cli/ (evaluate, predict)
@@ -36,6 +37,7 @@ LAYERS = (
     ("builders", ("gac_jax.builders",)),
     ("runs", ("gac_jax.trainers", "gac_jax.trained")),
     ("deploy", ("gac_jax.deploy",)),
+    ("guard", ("gac_jax.guard",)),
     ("api", ("gac_jax.api",)),
     ("streams", ("gac_jax.streams",)),
     ("cli", ("gac_jax.cli",)),
