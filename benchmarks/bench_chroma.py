@@ -144,7 +144,7 @@ def clip_variants(frames: int) -> dict[str, list[np.ndarray]]:
     from gac_jax.data.kitti import KittiObjects
     from gac_jax.data.kitti_tracking import KittiTrackingLayout
     from gac_jax.evaluation import viz
-    from gac_jax.evaluation.detection_pictures import bev_grid_for_height, detection_picture
+    from gac_jax.drawing.detection_pictures import bev_grid_for_height, detection_picture
 
     layout, sequence = KittiTrackingLayout.locate(clip_sequence(0))
     out: dict[str, list[np.ndarray]] = {}
@@ -176,7 +176,7 @@ def clip_variants(frames: int) -> dict[str, list[np.ndarray]]:
 def real_variants(folder: Path, frames: int) -> dict[str, list[np.ndarray]]:
     from gac_jax.data.files import read_image
     from gac_jax.data.kitti import KittiObjects
-    from gac_jax.evaluation.detection_pictures import detection_picture
+    from gac_jax.drawing.detection_pictures import detection_picture
 
     P2 = np.array([[721.5, 0, 609.6, 44.9], [0, 721.5, 172.9, 0.2], [0, 0, 1, 0.003]])
     images = [read_image(p) for p in sorted(folder.glob("*.png"))[:frames]]

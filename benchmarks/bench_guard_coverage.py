@@ -6,7 +6,7 @@ positives) is scored by a reference and a candidate (the reference's detections 
 little, each frame by a shared offset as a quantization error would, and re-scored). The
 "true" AP differences are those on the whole population. Guard sets of ``--frames`` frames
 are drawn from it (without replacement); each gets the guard's paired bootstrap
-(:func:`gac_jax.evaluation.ap_bootstrap.paired_ap_bootstrap`) and its interval at
+(:func:`gac_jax.guard.ap_bootstrap.paired_ap_bootstrap`) and its interval at
 ``--level`` (two-sided). Printed: per AP entry the share of sets whose interval holds the
 population's difference (the coverage), the median interval half-width, and the worst
 entries.
@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_kitti_eval import generate_dataset  # noqa: E402  (benchmarks/ is on sys.path)
 from machine_info import describe_machine, one_line  # noqa: E402
 
-from gac_jax.evaluation.ap_bootstrap import paired_ap_bootstrap  # noqa: E402
+from gac_jax.guard.ap_bootstrap import paired_ap_bootstrap  # noqa: E402
 
 
 def candidate_run(dts, seed: int, shift_m: float = 0.05, score_sd: float = 0.02):

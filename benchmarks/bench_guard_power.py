@@ -1,5 +1,5 @@
 """Frames the guard's count criteria need to say "within": the current rule (tests by betting
-within per-frame bounds, ``gac_jax.evaluation.frame_betting``) against the earlier one (a
+within per-frame bounds, ``gac_jax.guard.frame_betting``) against the earlier one (a
 design effect estimated from the frames, ``paired_proportions.clustered_interval``), by
 simulation.
 
@@ -35,8 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from machine_info import describe_machine, one_line  # noqa: E402  (benchmarks/ is on sys.path)
 
-from gac_jax.evaluation import frame_betting as fb  # noqa: E402
-from gac_jax.evaluation import paired_proportions as pp  # noqa: E402
+from gac_jax.guard import frame_betting as fb  # noqa: E402
+from gac_jax.guard import paired_proportions as pp  # noqa: E402
 
 MARGIN, ALPHA_SIDE = 0.5, 0.025  # points; look 1 of alpha 0.05
 OBJECTS = {"easy": 1.28, "moderate": 2.35, "hard": 2.65}  # Car objects per frame (4,000 frames)

@@ -11,10 +11,10 @@ keep in float32 (``evaluate.py ... --precision int8 --int8-keep-float PREFIX``);
 combination with ``bench_runtime_accuracy.py --keep-float PREFIX[,PREFIX]``.
 
 On a run's 300 val frames one entry's change moves by ~0.4-0.8 AP between disjoint 300-frame
-sets for any int8/bf16 perturbation (:mod:`gac_jax.evaluation.ap_resampling`), so a
+sets for any int8/bf16 perturbation (:mod:`gac_jax.guard.ap_resampling`), so a
 single-block row there is mostly noise; ``--guard-data DIR --split S`` (a larger generated
 dataset, e.g. 1,500 frames) and ``--bootstrap N`` add each row's paired-bootstrap verdict
-(within / beyond / undecided at ~95 %, :mod:`gac_jax.evaluation.ap_resampling`).
+(within / beyond / undecided at ~95 %, :mod:`gac_jax.guard.ap_resampling`).
 
     python benchmarks/bench_int8_sensitivity.py (--detect3d-workdir W | --depth-workdir W)
         [--int8-frames N] [--int8-seed S] [--split S] [--guard-data DIR] [--bootstrap N]

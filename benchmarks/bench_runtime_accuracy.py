@@ -25,7 +25,7 @@ converted authors' model on real frames).
 
 A detector guard's difference is only as good as its frame count: ``--bootstrap N`` (default
 200) gives every entry's paired-frame-bootstrap standard error and decides the ~95 % verdict
-(within / beyond / undecided; :mod:`gac_jax.evaluation.ap_resampling`); ``--folds K`` adds
+(within / beyond / undecided; :mod:`gac_jax.guard.ap_resampling`); ``--folds K`` adds
 the spread a guard of ``1/K`` of the frames would see. ``--guard-data DIR`` evaluates on a
 larger generated set.
 """
@@ -56,7 +56,7 @@ from gac_jax.deploy.runtimes import (  # noqa: E402
     RuntimeUnavailableError,
     check_runtime,
 )
-from gac_jax.evaluation.ap_resampling import (  # noqa: E402
+from gac_jax.guard.ap_resampling import (  # noqa: E402
     bootstrap_differences,
     car_ap40,
     fold_differences,
@@ -162,7 +162,7 @@ def guard_detector(
 ) -> dict:
     """Every combo on the run's val split (or ``data``'s ``split``); ``k`` >= 2 folds add
     each entry's fold spread, ``boots`` >= 2 bootstrap resamples its standard error, each
-    with the ~95 % verdict of :mod:`gac_jax.evaluation.ap_resampling`."""
+    with the ~95 % verdict of :mod:`gac_jax.guard.ap_resampling`."""
     runs, result_dirs = {}, {}
     where = {"data_root": data} if data else None
     for combo in combos:
@@ -195,8 +195,8 @@ def guard_detector(
 
 
 def detector_spread(result_dirs: dict[str, Path], k: int, boots: int) -> dict:
-    """:func:`~gac_jax.evaluation.ap_resampling.fold_differences` (``k`` >= 2) and
-    :func:`~gac_jax.evaluation.ap_resampling.bootstrap_differences` (``boots`` >= 2) of every
+    """:func:`~gac_jax.guard.ap_resampling.fold_differences` (``k`` >= 2) and
+    :func:`~gac_jax.guard.ap_resampling.bootstrap_differences` (``boots`` >= 2) of every
     combo against jax f32 (the frames and labels of the evaluation, from the result folder's
     ``run.json``)."""
     from gac_jax.data.kitti import KittiObjectLayout, read_split
@@ -277,12 +277,12 @@ def guard_depth(workdir: str, split, tmp: Path, combos: list[Combo]) -> dict:
 
 def match_detections(reference: Path, other: Path) -> dict:
     """Detections of ``other`` matched to ``reference``'s (result folders of the same frames;
-    :func:`gac_jax.evaluation.paired_guard.match_detections`: same class, 2D IoU >= 0.5,
+    :func:`gac_jax.guard.detector_rule.match_detections`: same class, 2D IoU >= 0.5,
     greedily in the reference's score order)."""
     import numpy as np
 
     from gac_jax.data.kitti import read_label
-    from gac_jax.evaluation.paired_guard import match_detections as match
+    from gac_jax.guard.detector_rule import match_detections as match
 
     n_ref = n_other = matched = 0
     score_d, loc_d = [], []
@@ -369,7 +369,7 @@ def main() -> None:
         type=int,
         default=5,
         help="detector: disjoint frame folds for the fold spread and the ~95%% verdict "
-        "(gac_jax.evaluation.ap_resampling; default 5, 0 = off)",
+        "(gac_jax.guard.ap_resampling; default 5, 0 = off)",
     )
     parser.add_argument(
         "--bootstrap",

@@ -139,7 +139,7 @@ def run_stream(
     rate, newest frame kept, as ``--realtime``); returns its rates, latencies and CPU times."""
     import functools
 
-    from gac_jax.evaluation.detection_pictures import detection_picture
+    from gac_jax.drawing.detection_pictures import detection_picture
     from gac_jax.streams import outputs, sources
     from gac_jax.streams.pipeline import StreamPipeline
 

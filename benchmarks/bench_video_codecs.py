@@ -1,6 +1,6 @@
 """Bytes per frame, picture quality and encoder CPU of the annotated video's codecs.
 
-The pictures are those a stream writes (:func:`gac_jax.evaluation.detection_pictures.
+The pictures are those a stream writes (:func:`gac_jax.drawing.detection_pictures.
 detection_picture`: camera view with 3D boxes, 2D boxes and labels beside the bird's-eye view;
 1564x375 for a 1242x375 frame), drawn from the ground-truth boxes of generated driving clip 0
 (60 frames, the ``--clip`` of the stream command), so that no detector is needed. Each codec
@@ -46,7 +46,7 @@ def clip_pictures(frames: int) -> list[np.ndarray]:
     from gac_jax.cli.stream_start import clip_sequence
     from gac_jax.data.files import read_image
     from gac_jax.data.kitti_tracking import KittiTrackingLayout
-    from gac_jax.evaluation.detection_pictures import detection_picture
+    from gac_jax.drawing.detection_pictures import detection_picture
 
     layout, sequence = KittiTrackingLayout.locate(clip_sequence(0))
     out = []
@@ -63,7 +63,7 @@ def clip_pictures(frames: int) -> list[np.ndarray]:
 def real_pictures(folder: Path, frames: int) -> list[np.ndarray]:
     from gac_jax.data.files import read_image
     from gac_jax.data.kitti import KittiObjects
-    from gac_jax.evaluation.detection_pictures import detection_picture
+    from gac_jax.drawing.detection_pictures import detection_picture
 
     P2 = np.array([[721.5, 0, 609.6, 44.9], [0, 721.5, 172.9, 0.2], [0, 0, 1, 0.003]])
     paths = sorted(folder.glob("*.png"))[:frames]

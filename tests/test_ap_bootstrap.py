@@ -1,4 +1,4 @@
-"""The paired frame bootstrap of AP (gac_jax.evaluation.ap_bootstrap) against the evaluator.
+"""The paired frame bootstrap of AP (gac_jax.guard.ap_bootstrap) against the evaluator.
 
 Resampled AP is computed from per-frame pieces; with every frame once it must give exactly
 the evaluator's numbers, and with any resample's counts the evaluator's numbers on the frames
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from gac_jax.data.kitti import read_label, read_split
-from gac_jax.evaluation import ap_bootstrap
 from gac_jax.evaluation.kitti_object import DIFFICULTIES, DetectionEvalSet, evaluate_detections
-from tests.test_paired_guard import label_detections
+from gac_jax.guard import ap_bootstrap
+from tests.test_detector_rule import label_detections
 
 
 @pytest.fixture(scope="module")

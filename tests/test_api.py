@@ -34,8 +34,8 @@ from gac_jax.api import (
 from gac_jax.data.files import read_depth_png, read_image
 from gac_jax.data.kitti import KittiObjectLayout, format_label, read_calib, read_split
 from gac_jax.data.sources import KittiDepthSource
+from gac_jax.drawing.boxes import draw_detections
 from gac_jax.evaluation.depth_evaluator import prediction_relpath, quantize_depth
-from gac_jax.evaluation.viz import draw_detections
 from gac_jax.geometry import level_plane
 from tests.test_runtimes import assert_same_results
 

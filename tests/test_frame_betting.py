@@ -1,4 +1,4 @@
-"""The guard's count intervals (gac_jax.evaluation.frame_betting) by hand and by simulation at
+"""The guard's count intervals (gac_jax.guard.frame_betting) by hand and by simulation at
 the margin.
 
 The bets and the capital are pinned to a plain-Python transcription of their formulas. The
@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from scipy.stats import poisson
 
-from gac_jax.evaluation import frame_betting as fb
-from gac_jax.evaluation import paired_guard as pg
-from gac_jax.evaluation import paired_proportions as pp
+from gac_jax.guard import detector_rule as pg
+from gac_jax.guard import frame_betting as fb
+from gac_jax.guard import paired_proportions as pp
 
 MARGIN, ALPHA = 0.5, 0.05
 RUNS = 800

@@ -23,8 +23,9 @@ pytest.importorskip("nncf", reason="deploy extra (nncf) not installed")
 
 from gac_jax.cli import evaluate as evaluate_cli  # noqa: E402
 from gac_jax.cli import guard  # noqa: E402
-from gac_jax.deploy import guard_verdict, int8  # noqa: E402
+from gac_jax.deploy import int8  # noqa: E402
 from gac_jax.deploy.export import artifact  # noqa: E402
+from gac_jax.guard import verdict_file  # noqa: E402
 
 FRAMES = "3"
 
@@ -41,7 +42,7 @@ def guarded(tiny_detect3d_workdir, tmp_path_factory):
 
 def test_guard_writes_undecided_verdicts_with_the_frames_needed(guarded, capsys):
     wd, report = guarded
-    data = guard_verdict.read_guard(wd / "export" / "step2")
+    data = verdict_file.read_guard(wd / "export" / "step2")
     assert set(data["verdicts"]) == {"onnxruntime:f32", "openvino:int8+heading"}
     assert data["model"]["weights"] == "step2" and data["model"]["onnx_sha256"]
     for entry in data["verdicts"].values():
@@ -221,18 +222,18 @@ def test_a_changed_score_threshold_is_not_guarded(guarded):
 def test_the_verdict_records_its_rule_and_look(guarded):
     wd, _ = guarded
     out = wd / "export" / "step2"
-    data = guard_verdict.read_guard(out)
+    data = verdict_file.read_guard(out)
     entry = data["verdicts"]["onnxruntime:f32"]
     rule = entry["rule"]
-    assert rule["version"] == guard_verdict.RULE_VERSION and rule["min_score"] == 0.0
+    assert rule["version"] == verdict_file.RULE_VERSION and rule["min_score"] == 0.0
     assert rule["score_thresholds"] == [0.0, 0.3, 0.5, 0.7, 0.9] and rule["margin_points"] == 0.5
     assert entry["look"] == 1 and entry["alpha_look"] == 0.025 and len(entry["looks"]) == 1
-    assert guard_verdict.rule_mismatch(entry, 0.0, 0.5) is None
-    assert "score threshold 0.0, this run uses 0.3" in guard_verdict.rule_mismatch(entry, 0.3)
-    assert "margin 0.5" in guard_verdict.rule_mismatch(entry, 0.0, 1.0)
+    assert verdict_file.rule_mismatch(entry, 0.0, 0.5) is None
+    assert "score threshold 0.0, this run uses 0.3" in verdict_file.rule_mismatch(entry, 0.3)
+    assert "margin 0.5" in verdict_file.rule_mismatch(entry, 0.0, 1.0)
     old = {k: v for k, v in entry.items() if k not in ("rule", "looks")}
-    assert "earlier recall-only rule" in guard_verdict.rule_mismatch(old, 0.0)
+    assert "earlier recall-only rule" in verdict_file.rule_mismatch(old, 0.0)
     # the next guard run of this model and candidate is look 2
-    looks = guard_verdict.previous_looks(out, data["model"], "onnxruntime:f32")
+    looks = verdict_file.previous_looks(out, data["model"], "onnxruntime:f32")
     assert [look["frames"] for look in looks] == [4]
-    assert guard_verdict.previous_looks(out, {"weights": "other"}, "onnxruntime:f32") == []
+    assert verdict_file.previous_looks(out, {"weights": "other"}, "onnxruntime:f32") == []

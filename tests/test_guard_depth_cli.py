@@ -25,8 +25,10 @@ from gac_jax import DepthPredictor  # noqa: E402
 from gac_jax.cli import evaluate as evaluate_cli  # noqa: E402
 from gac_jax.cli import guard  # noqa: E402
 from gac_jax.data.synthetic.writer import generate_dataset  # noqa: E402
-from gac_jax.deploy import guard_verdict  # noqa: E402
-from gac_jax.evaluation import paired_depth_guard  # noqa: E402
+from gac_jax.guard import (
+    depth_rule,  # noqa: E402
+    verdict_file,  # noqa: E402
+)
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +52,7 @@ def guarded(depth_workdir, tmp_path_factory):
     generate_dataset(data, 8, seed=5, val_fraction=0.5, workers=1)  # 4 val frames
     report = depth_workdir.parent / "report.json"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(paired_depth_guard, "MIN_FRAMES", 4)  # 4 generated frames
+        mp.setattr(depth_rule, "MIN_FRAMES", 4)  # 4 generated frames
         assert guard.main([*guard_argv(depth_workdir, data), "--json", str(report)]) == 0
         again = guard.guard_workdir(
             guard.build_parser().parse_args(guard_argv(depth_workdir, data))
@@ -60,7 +62,7 @@ def guarded(depth_workdir, tmp_path_factory):
 
 def test_depth_guard_decides_onnxruntime_within_and_resumes(guarded):
     wd, data, report, again = guarded
-    stored = guard_verdict.read_guard(wd / "export" / "step2")
+    stored = verdict_file.read_guard(wd / "export" / "step2")
     assert stored["model"]["weights"] == "step2" and stored["model"]["onnx_sha256"]
     assert "SILog" in stored["rule"]["text"] and stored["rule"]["margin_silog"] == 0.2
     ort = stored["verdicts"]["onnxruntime:f32"]

@@ -1,4 +1,4 @@
-"""The accuracy guard's fold spread and verdict (gac_jax.evaluation.ap_resampling) on real KITTI
+"""The accuracy guard's fold spread and verdict (gac_jax.guard.ap_resampling) on real KITTI
 labels: folds partition the frames, identical runs are "within", a run that lost detections
 is "beyond", and the verdict's 2-standard-error boundaries by hand."""
 
@@ -19,7 +19,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def guard_folds():
-    return importlib.import_module("gac_jax.evaluation.ap_resampling")
+    return importlib.import_module("gac_jax.guard.ap_resampling")
 
 
 def _as_results(labels, out: Path, ids, keep=lambda i: True):

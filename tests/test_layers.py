@@ -1,17 +1,18 @@
 """The package's layers: no import circle, and no import from a lower layer up to a higher one.
 
-The order (README, "What is where"), lowest first; a module may import from its own layer and
+The order (docs/code_layout.md), lowest first; a module may import from its own layer and
 the layers below it:
 
     base        geometry, cpu_backend, progress
     data        data/, config
     paper       detection/, depth/, models/
-    services    evaluation/ (scoring), training/ (run plumbing)
+    services    evaluation/ (scoring), drawing/ (pictures), training/ (run plumbing)
     tracking    tracking/ (objects over time: the multi-object trackers, numpy/scipy)
     weights     weights/ (PyTorch import, pretrained backbones)
     builders    builders/ (config -> model, anchors, priors, transforms, evaluators)
     runs        trainers/, trained/ (a trained model from a run folder or converted weights)
     deploy      deploy/ (ONNX export, ONNX Runtime / OpenVINO)
+    guard       guard/ (the accuracy guard: its statistics, rules and verdicts on exports)
     api         api/ (the inference API: Detector3D, DepthPredictor)
     streams     streams/ (video files, cameras, image sequences through a detector)
     cli         cli/ (evaluate, predict)
@@ -30,12 +31,13 @@ LAYERS = (
     ("base", ("gac_jax.geometry", "gac_jax.cpu_backend", "gac_jax.progress")),
     ("data", ("gac_jax.data", "gac_jax.config")),
     ("paper", ("gac_jax.detection", "gac_jax.depth", "gac_jax.models")),
-    ("services", ("gac_jax.evaluation", "gac_jax.training")),
+    ("services", ("gac_jax.evaluation", "gac_jax.drawing", "gac_jax.training")),
     ("tracking", ("gac_jax.tracking",)),
     ("weights", ("gac_jax.weights",)),
     ("builders", ("gac_jax.builders",)),
     ("runs", ("gac_jax.trainers", "gac_jax.trained")),
     ("deploy", ("gac_jax.deploy",)),
+    ("guard", ("gac_jax.guard",)),
     ("api", ("gac_jax.api",)),
     ("streams", ("gac_jax.streams",)),
     ("cli", ("gac_jax.cli",)),
@@ -159,7 +161,7 @@ def test_the_benchmarks_have_no_import_circle():
 
 def test_every_module_has_a_layer():
     unplaced = [m for m in import_graph(REPO) if m != "gac_jax" and layer_of(m) is None]
-    assert unplaced == [], f"add these to LAYERS (and README's 'What is where'): {unplaced}"
+    assert unplaced == [], f"add these to LAYERS (and docs/code_layout.md): {unplaced}"
 
 
 def test_no_import_runs_from_a_lower_layer_to_a_higher_one():

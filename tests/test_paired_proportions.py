@@ -1,4 +1,4 @@
-"""Paired proportions (gac_jax.evaluation.paired_proportions) against independent
+"""Paired proportions (gac_jax.guard.paired_proportions) against independent
 calculations: a discordant table is pinned to scipy.stats' exact binomial intervals combined
 by hand, McNemar and Holm to hand values, the earlier rule's design effect to a float64 hand
 computation, and the alpha spent over looks. The guard's current count intervals and their
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gac_jax.evaluation import paired_proportions as pp
+from gac_jax.guard import paired_proportions as pp
 
 MARGIN, ALPHA = 0.5, 0.05
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from gac_jax.data.kitti import KittiObjects
-from gac_jax.evaluation.track_pictures import ImageTrails, track_color, track_picture
-from gac_jax.evaluation.viz import class_color
+from gac_jax.drawing.boxes import class_color
+from gac_jax.drawing.track_pictures import ImageTrails, track_color, track_picture
 
 P2 = np.array([[700.0, 0, 450, 0], [0, 700.0, 40, 0], [0, 0, 1, 0]])
 

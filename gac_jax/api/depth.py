@@ -133,8 +133,8 @@ class DepthPredictor(StagedModel):
     def precision_line(self) -> str:
         """Which precision runs and what the accuracy guard (``python -m gac_jax.cli.guard``)
         decided for these weights: the line ``evaluate.py --task depth`` prints."""
-        from gac_jax.deploy.guard_verdict import describe_precision
         from gac_jax.deploy.int8 import Int8Settings
+        from gac_jax.guard.verdict_file import describe_precision
 
         int8 = Int8Settings() if self.precision == "int8" else None
         return describe_precision(

@@ -65,7 +65,7 @@ class Detections:
     ``len(d)``, ``d[i]`` and ``for obj in d`` give :class:`DetectedObject` records;
     :meth:`to_kitti_lines` the KITTI result lines (score last) that ``evaluate.py`` writes,
     :meth:`to_kitti_objects` the project's :class:`~gac_jax.data.kitti.KittiObjects` (for
-    :mod:`gac_jax.evaluation.viz`), :meth:`to_dict` plain JSON-ready values.
+    :mod:`gac_jax.drawing.boxes`), :meth:`to_dict` plain JSON-ready values.
     """
 
     names: np.ndarray

@@ -275,7 +275,7 @@ class Detector3D(StagedModel):
         """Which precision runs and what the accuracy guard (``python -m gac_jax.cli.guard``)
         decided for these weights and settings: the line ``evaluate.py`` and the predict CLI
         print, e.g. ``precision: openvino int8; not guarded for these weights (...)``."""
-        from gac_jax.deploy.guard_verdict import precision_line
+        from gac_jax.guard.verdict_file import precision_line
 
         int8 = (self._int8 or Int8Settings()) if self.precision == "int8" else None
         return precision_line(

@@ -27,7 +27,6 @@ from pathlib import Path
 from gac_jax.cli.result_folder import check_resumable
 from gac_jax.data import transforms
 from gac_jax.data.files import KittiFormatError, atomic_write
-from gac_jax.deploy.guard_verdict import describe_precision, network_identity
 from gac_jax.deploy.int8 import Int8Settings, int8_settings
 from gac_jax.deploy.runtime_choice import resolve_runtime, run_suffix, runtime_predictor
 from gac_jax.evaluation.depth_baselines import RowMeanPredictor, fit_row_log_depth
@@ -38,6 +37,7 @@ from gac_jax.evaluation.depth_evaluator import (
     GroundPlanePredictor,
 )
 from gac_jax.evaluation.depth_metrics import format_depth_table
+from gac_jax.guard.verdict_file import describe_precision, network_identity
 from gac_jax.trained.depth import restore_depth_model
 from gac_jax.trained.fingerprint import weights_sha256
 from gac_jax.trained.run_config import load_workdir_config
@@ -92,7 +92,7 @@ def evaluate_workdir(
     sha = weights_sha256(variables)
     source = _data_source(config, data, split)
     if frames is not None:
-        from gac_jax.evaluation.paired_depth_guard import sample_source
+        from gac_jax.guard.depth_rule import sample_source
 
         source = sample_source(source, frames)
     name = f"step_{step}_{_tag(source, split)}{run_suffix(runtime, precision)}"

@@ -35,7 +35,6 @@ from gac_jax.cli.model_mode import limit_cpu_threads, xla_thread_count
 from gac_jax.cli.result_folder import check_resumable
 from gac_jax.data.files import KittiFormatError, atomic_write
 from gac_jax.data.sources import open_object_source
-from gac_jax.deploy.guard_verdict import network_identity, precision_line
 from gac_jax.deploy.int8 import Int8Settings, int8_settings
 from gac_jax.deploy.runtime_choice import (
     default_export_dir,
@@ -43,8 +42,9 @@ from gac_jax.deploy.runtime_choice import (
     run_suffix,
     use_runtime,
 )
+from gac_jax.drawing.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.ap_table import format_table
-from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
+from gac_jax.guard.verdict_file import network_identity, precision_line
 from gac_jax.trained.detector import LoadedDetector, evaluator_for, load_detector
 
 # imported from here by tests and benchmarks (explicit re-exports)
@@ -65,7 +65,7 @@ def run_settings(
 ) -> dict:
     """What the result files of a run depend on (compared when resuming,
     :func:`gac_jax.cli.result_folder.check_resumable`); ``network``: for an exported network
-    its :func:`gac_jax.deploy.guard_verdict.network_identity`."""
+    its :func:`gac_jax.guard.verdict_file.network_identity`."""
     c = detector.config
     return (
         {

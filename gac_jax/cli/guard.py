@@ -10,7 +10,7 @@ float32 (the reference) and with every candidate (``RUNTIME:PRECISION``, ``+head
 with the heading kept in float32: ``openvino:int8+heading``), each exactly as ``evaluate.py
 --runtime R --precision P [--int8-keep-heading]`` builds it (export and int8 model in
 ``W/export/<step>``, int8 calibrated on the run's training split), and decides per candidate
-with :mod:`gac_jax.evaluation.paired_guard`: paired recall at 2D@0.7, BEV@0.5/0.7, 3D@0.5/0.7
+with :mod:`gac_jax.guard.detector_rule`: paired recall at 2D@0.7, BEV@0.5/0.7, 3D@0.5/0.7
 and heading at the deployed score threshold and at 0.3 / 0.5 / 0.7 / 0.9 above it, false
 positives per frame above each, heading and centre error quantile shifts, per class and
 difficulty (frames as the unit, tests by betting valid for any per-frame distribution of the
@@ -20,7 +20,7 @@ checked), and every AP entry with a paired frame bootstrap -> within / beyond / 
 look and spends less alpha). Prints the Car AP|R40 table (all frames, difference to
 float32), each candidate's criteria that are not within, the matched detections' differences
 and the verdicts, and writes the verdicts with their rule to ``W/export/<step>/guard.json``
-(:mod:`gac_jax.deploy.guard_verdict`), which ``evaluate.py`` reads to say whether the
+(:mod:`gac_jax.guard.verdict_file`), which ``evaluate.py`` reads to say whether the
 precision it runs was guarded.
 
 Guard frames: ``--guard-data DIR`` (a KITTI-format root, e.g. generated frames the model never
@@ -30,7 +30,7 @@ first N (whole batches). Result files go to ``W/eval/guard_<data>_<split>/<candi
 one per frame as they are made; a rerun resumes them (a folder made from other weights, by
 their sha256, or another exported network starts again; one made with other settings is
 refused). The verdicts are bound to the weights' sha256, the exported graph, the int8 model,
-the runtime's version and the score threshold (:mod:`gac_jax.deploy.guard_verdict`).
+the runtime's version and the score threshold (:mod:`gac_jax.guard.verdict_file`).
 
 A depth workdir (``python train.py --task depth``) gets the depth guard instead: the paired
 per-frame SILog difference, margin 0.2 (:mod:`gac_jax.cli.guard_depth`).
@@ -142,8 +142,8 @@ def _predict(workdir, config, step, source, runtime, precision, int8, out, threa
 
     from gac_jax.cli.evaluate_detector import run_settings
     from gac_jax.cli.result_folder import check_resumable
-    from gac_jax.deploy.guard_verdict import network_identity
     from gac_jax.deploy.runtime_choice import default_export_dir, use_runtime
+    from gac_jax.guard.verdict_file import network_identity
     from gac_jax.trained.detector import evaluator_for, load_detector
 
     dtype = jnp.bfloat16 if (runtime, precision) == ("jax", "bf16") else jnp.float32
@@ -174,12 +174,11 @@ def guard_workdir(args) -> dict:
     from gac_jax.cli.model_mode import limit_cpu_threads
     from gac_jax.data.files import KittiFormatError
     from gac_jax.data.sources import open_object_source
-    from gac_jax.deploy import guard_verdict
     from gac_jax.deploy.runtime_choice import default_export_dir, resolve_runtime
-    from gac_jax.evaluation import ap_bootstrap, guard_criteria, paired_guard
-    from gac_jax.evaluation.ap_resampling import car_ap40
     from gac_jax.evaluation.detector_evaluator import ground_truth
     from gac_jax.evaluation.kitti_object import evaluate_detections
+    from gac_jax.guard import ap_bootstrap, criteria, detector_rule, verdict_file
+    from gac_jax.guard.ap_resampling import car_ap40
     from gac_jax.trained.run_config import load_run_config
     from gac_jax.training import workdir_lock
 
@@ -208,14 +207,14 @@ def guard_workdir(args) -> dict:
         raise KittiFormatError(root, f"--frames must be at least 1, got {args.frames}")
     batch = config.data.eval_batch_size
     batches = math.ceil(frames / batch)
-    margin = paired_guard.MARGIN if args.margin is None else args.margin
-    alpha = paired_guard.ALPHA if args.alpha is None else args.alpha
-    tol = guard_criteria.HEADING_TOLERANCE_DEG
+    margin = detector_rule.MARGIN if args.margin is None else args.margin
+    alpha = detector_rule.ALPHA if args.alpha is None else args.alpha
+    tol = criteria.HEADING_TOLERANCE_DEG
     tol = tol if args.heading_tolerance is None else args.heading_tolerance
     min_score = float(config.eval.score_threshold)
-    thresholds = guard_criteria.score_thresholds(min_score)
-    ap_margin = paired_guard.AP_MARGIN if args.ap_margin is None else args.ap_margin
-    fp_cap = paired_guard.FP_CAP if args.fp_cap is None else args.fp_cap
+    thresholds = criteria.score_thresholds(min_score)
+    ap_margin = detector_rule.AP_MARGIN if args.ap_margin is None else args.ap_margin
+    fp_cap = detector_rule.FP_CAP if args.fp_cap is None else args.fp_cap
     resamples = ap_bootstrap.RESAMPLES if args.resamples is None else args.resamples
     if resamples < 2:
         raise KittiFormatError("--resamples", f"must be at least 2, got {resamples}")
@@ -225,7 +224,7 @@ def guard_workdir(args) -> dict:
     results, speed, networks = {}, {}, {}
     with workdir_lock.hold_if_inside(workdir, None):
         for runtime, precision, heading in runs:
-            key = guard_verdict.candidate_key(
+            key = verdict_file.candidate_key(
                 runtime, precision, _settings(args, heading) if precision == "int8" else None
             )
             print(f"=== {key} on {frames} frames of {root} ({split}) ===", flush=True)
@@ -243,27 +242,27 @@ def guard_workdir(args) -> dict:
         report = {"frames": len(ids), "reference_ap": ap_ref, "candidates": {}}
         verdicts = {}
         created = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
-        model = guard_verdict.model_identity(export_dir, detector.tag, detector.weights_sha256)
+        model = verdict_file.model_identity(export_dir, detector.tag, detector.weights_sha256)
         rule = _rule(margin, ap_margin, alpha, tol, min_score, thresholds, resamples, fp_cap)
         for runtime, precision, heading in candidates:
             int8 = _settings(args, heading) if precision == "int8" else None
-            key = guard_verdict.candidate_key(runtime, precision, int8)
+            key = verdict_file.candidate_key(runtime, precision, int8)
             cand = [results[key][i] for i in ids]
-            tables = guard_criteria.guard_tables(gt, ref, cand, classes, min_score, tol, thresholds)
+            tables = criteria.guard_tables(gt, ref, cand, classes, min_score, tol, thresholds)
             ap = ap_bootstrap.paired_ap_bootstrap(gt, ref, cand, classes, resamples)
-            looks = guard_verdict.previous_looks(export_dir, model, key)
-            decision = paired_guard.decide(
+            looks = verdict_file.previous_looks(export_dir, model, key)
+            decision = detector_rule.decide(
                 tables, len(ids), margin, alpha, len(looks) + 1, ap, ap_margin, fp_cap
             )
             ap = car_ap40(evaluate_detections(gt, cand, classes=("Car",)))
-            matched = paired_guard.matched_differences(ref, cand)
+            matched = detector_rule.matched_differences(ref, cand)
             report["candidates"][key] = {
                 "decision": decision,
                 "ap": ap,
                 "matched": matched,
                 "model_ms": speed[key],
             }
-            verdicts[key] = guard_verdict.verdict_entry(
+            verdicts[key] = verdict_file.verdict_entry(
                 runtime,
                 precision,
                 int8,
@@ -284,27 +283,27 @@ def guard_workdir(args) -> dict:
                     {"frames": len(ids), "verdict": decision["verdict"], "created": created},
                 ],
             )
-        report["guard_file"] = str(guard_verdict.write_guard(export_dir, model, rule, verdicts))
+        report["guard_file"] = str(verdict_file.write_guard(export_dir, model, rule, verdicts))
     print_report(report, speed["jax:f32"])
     return report
 
 
 def _rule(margin, ap_margin, alpha, tol, min_score, thresholds, resamples, fp_cap) -> dict:
     """The rule a verdict was decided under (stored with it; see
-    :func:`gac_jax.deploy.guard_verdict.rule_mismatch`)."""
-    from gac_jax.deploy.guard_verdict import RULE_VERSION
-    from gac_jax.evaluation.guard_criteria import QUANTILES
+    :func:`gac_jax.guard.verdict_file.rule_mismatch`)."""
+    from gac_jax.guard.criteria import QUANTILES
+    from gac_jax.guard.verdict_file import RULE_VERSION
 
     return {
         "version": RULE_VERSION,
         "text": "paired recall at each score threshold, false positives per frame above each, "
         "heading and centre error quantile shifts, and every AP entry vs jax float32 "
-        "(gac_jax.evaluation.paired_guard); frames as the unit",
+        "(gac_jax.guard.detector_rule); frames as the unit",
         "margin_points": margin,
         "ap_margin_points": ap_margin,
         "alpha": alpha,
         "alpha_spending": "alpha / 2^k at look k",
-        "interval": "tests by betting on the per-frame changes (gac_jax.evaluation."
+        "interval": "tests by betting on the per-frame changes (gac_jax.guard."
         "frame_betting): a frame changes at most its objects, no frame has more than the "
         "largest guard frame, at most fp_cap false positives per frame (checked); AP: "
         "diff -+ z * paired frame-bootstrap se",
@@ -371,7 +370,7 @@ def print_report(report: dict, ref_ms) -> None:
             + f"; heading flips > 90 deg: {m['heading_flips']} "
             f"({100 * m['heading_flip_share']:.2f} %)"
         )
-    print(f"\nverdicts (gac_jax.evaluation.paired_guard), written to {report['guard_file']}:")
+    print(f"\nverdicts (gac_jax.guard.detector_rule), written to {report['guard_file']}:")
     for key, c in cands.items():
         ms = f", model {c['model_ms']:.1f} ms/frame" if c["model_ms"] else ""
         print(f"  {key:24s} {c['decision']['verdict']:9s} {c['decision']['reason']}{ms}")

@@ -6,7 +6,7 @@
 Runs the depth network of ``W`` with jitted float32 (the reference) and every candidate on
 the same frames, each exactly as ``evaluate.py --task depth --runtime R --precision P``
 builds it (export and int8 model in ``W/export/step<N>``), and decides per candidate with
-:mod:`gac_jax.evaluation.paired_depth_guard`: the paired per-frame SILog difference ->
+:mod:`gac_jax.guard.depth_rule`: the paired per-frame SILog difference ->
 within / beyond / undecided (with the frames that would decide). Prints the KITTI depth
 metrics of each run, the paired differences and the verdicts, and writes the verdicts to
 ``W/export/step<N>/guard.json``, which ``evaluate.py --task depth`` and
@@ -16,10 +16,10 @@ Guard frames: ``--guard-data DIR``, a KITTI-depth root (``DIR/data_depth_annotat
 generated dataset (its ``depth/`` folder is used), split ``--split`` (default ``val``); else
 the run's own evaluation data. At least 100 frames (fewer are refused before any model runs);
 ``--frames N`` (at least 100) takes N frames spread evenly over the drives, both cameras of
-each (:func:`gac_jax.evaluation.paired_depth_guard.spread_frames`), not the first N. Depth
+each (:func:`gac_jax.guard.depth_rule.spread_frames`), not the first N. Depth
 maps go to ``W/eval/guard_<data>_<split>_step<N>/<candidate>/depth``, one PNG per image as
 they are made; a rerun resumes them. A rerun on the same model is the next look and spends
-less alpha (:mod:`gac_jax.evaluation.paired_depth_guard`).
+less alpha (:mod:`gac_jax.guard.depth_rule`).
 """
 
 from __future__ import annotations
@@ -42,8 +42,7 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
     ``settings(keep_heading)``: the int8 settings of the command line. Returns the report."""
     from gac_jax.cli.evaluate_depth import evaluate_workdir
     from gac_jax.data.files import KittiFormatError
-    from gac_jax.deploy import guard_verdict
-    from gac_jax.evaluation import paired_depth_guard
+    from gac_jax.guard import depth_rule, verdict_file
     from gac_jax.trained.depth import checkpoint_step
     from gac_jax.trained.run_config import load_workdir_config
     from gac_jax.training import workdir_lock
@@ -61,8 +60,8 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
         raise KittiFormatError(root, "guard data folder not found")
     split = args.split or ("val" if root is not None else None)
     chosen = _guard_frames(config, root, split, args.frames)
-    margin = paired_depth_guard.MARGIN if args.margin is None else args.margin
-    alpha = paired_depth_guard.ALPHA if args.alpha is None else args.alpha
+    margin = depth_rule.MARGIN if args.margin is None else args.margin
+    alpha = depth_rule.ALPHA if args.alpha is None else args.alpha
     data_name = Path(args.guard_data).resolve().name if root is not None else "own"
     base = workdir / "eval" / f"guard_{data_name}_{split or 'val'}_step{step}"
     export_dir = workdir / "export" / f"step{step}"
@@ -71,7 +70,7 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
     with workdir_lock.hold_if_inside(workdir, None):
         for runtime, precision, _ in runs:
             int8 = settings(False) if precision == "int8" else None
-            key = guard_verdict.candidate_key(runtime, precision, int8)
+            key = verdict_file.candidate_key(runtime, precision, int8)
             print(f"=== depth {key} ({data_name} {split or 'val'}) ===", flush=True)
             results[key] = evaluate_workdir(
                 workdir,
@@ -91,29 +90,29 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
         report = {"frames": None, "reference": ref["metrics"], "candidates": {}}
         verdicts = {}
         created = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
-        model = guard_verdict.model_identity(export_dir, f"step{step}", ref["weights_sha256"])
+        model = verdict_file.model_identity(export_dir, f"step{step}", ref["weights_sha256"])
         rule = {
-            "version": guard_verdict.DEPTH_RULE_VERSION,
-            "text": "paired per-frame SILog vs jax float32 (gac_jax.evaluation.paired_depth_guard)",
+            "version": verdict_file.DEPTH_RULE_VERSION,
+            "text": "paired per-frame SILog vs jax float32 (gac_jax.guard.depth_rule)",
             "margin_silog": margin,
             "alpha": alpha,
             "alpha_spending": "alpha / 2^k at look k",
-            "min_frames": paired_depth_guard.MIN_FRAMES,
+            "min_frames": depth_rule.MIN_FRAMES,
             "frames": "all" if chosen is None else "spread evenly over the drives",
         }
         for runtime, precision, _ in candidates:
             int8 = settings(False) if precision == "int8" else None
-            key = guard_verdict.candidate_key(runtime, precision, int8)
+            key = verdict_file.candidate_key(runtime, precision, int8)
             res = results[key]
-            looks = guard_verdict.previous_looks(export_dir, model, key)
+            looks = verdict_file.previous_looks(export_dir, model, key)
             try:
-                decision = paired_depth_guard.decide_depth(
+                decision = depth_rule.decide_depth(
                     ref["per_image"],
                     res["per_image"],
                     margin,
                     alpha,
                     len(looks) + 1,
-                    paired_depth_guard.MIN_FRAMES,
+                    depth_rule.MIN_FRAMES,
                 )
             except ValueError as e:
                 raise KittiFormatError(root or workdir, str(e)) from None
@@ -121,11 +120,11 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
             ms = _model_ms(res)
             report["candidates"][key] = {"decision": decision, "model_ms": ms}
             row = decision["criteria"]["silog"]
-            verdicts[key] = guard_verdict.verdict_entry(
+            verdicts[key] = verdict_file.verdict_entry(
                 runtime,
                 precision,
                 int8,
-                guard_verdict.network_identity(export_dir, runtime, precision, int8),
+                verdict_file.network_identity(export_dir, runtime, precision, int8),
                 verdict=decision["verdict"],
                 reason=decision["reason"],
                 frames=decision["frames"],
@@ -145,9 +144,9 @@ def guard_depth_workdir(args, candidates, settings) -> dict:
                         "created": created,
                     },
                 ],
-                drives=len({paired_depth_guard.drive_of(r["frame"]) for r in ref["per_image"]}),
+                drives=len({depth_rule.drive_of(r["frame"]) for r in ref["per_image"]}),
             )
-        report["guard_file"] = str(guard_verdict.write_guard(export_dir, model, rule, verdicts))
+        report["guard_file"] = str(verdict_file.write_guard(export_dir, model, rule, verdicts))
     report["reference_ms"] = _model_ms(ref)
     print_depth_report(report)
     return report
@@ -158,7 +157,7 @@ def _guard_frames(config, root: Path | None, split: str | None, frames: int | No
     ``MIN_FRAMES`` of them, ``--frames N`` spread evenly over the drives."""
     from gac_jax.cli.evaluate_depth import _data_source
     from gac_jax.data.files import KittiFormatError
-    from gac_jax.evaluation import paired_depth_guard as pdg
+    from gac_jax.guard import depth_rule as pdg
 
     if frames is not None and frames < pdg.MIN_FRAMES:
         raise KittiFormatError(
@@ -187,7 +186,7 @@ def _model_ms(result: dict) -> float | None:
 
 def print_depth_report(report: dict) -> None:
     """Each candidate's metrics next to float32's, the paired differences, the verdicts."""
-    from gac_jax.evaluation.paired_depth_guard import REPORTED
+    from gac_jax.guard.depth_rule import REPORTED
 
     print(f"\ndepth metrics on {report['frames']} frames (candidate - jax f32, paired)")
     for key, c in report["candidates"].items():
@@ -200,7 +199,7 @@ def print_depth_report(report: dict) -> None:
                 f"  {m:8s} {d['reference'][m]:10.3f} -> {d['candidate'][m]:10.3f}"
                 f"  {r['diff']:+9.4f} [{iv[0]:+9.4f}, {iv[1]:+9.4f}]"
             )
-    print(f"\nverdicts (gac_jax.evaluation.paired_depth_guard), written to {report['guard_file']}:")
+    print(f"\nverdicts (gac_jax.guard.depth_rule), written to {report['guard_file']}:")
     for key, c in report["candidates"].items():
         ms = f", model {c['model_ms']:.1f} ms/image" if c["model_ms"] else ""
         print(f"  {key:24s} {c['decision']['verdict']:9s} {c['decision']['reason']}{ms}")

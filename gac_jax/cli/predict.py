@@ -207,9 +207,9 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     import jax.numpy as jnp
 
     from gac_jax.data.files import KittiFormatError
-    from gac_jax.deploy.guard_verdict import precision_line
     from gac_jax.deploy.runtime_choice import use_runtime
-    from gac_jax.evaluation.detection_pictures import save_pictures
+    from gac_jax.drawing.detection_pictures import save_pictures
+    from gac_jax.guard.verdict_file import precision_line
     from gac_jax.trained.detector import evaluator_for, load_detector
     from gac_jax.trained.run_config import load_run_config
 

@@ -303,7 +303,7 @@ def _run_stream(args: argparse.Namespace, threads: int, start: StreamStart, sign
     import time
 
     from gac_jax.data.io_errors import error_line
-    from gac_jax.evaluation.detection_pictures import detection_picture
+    from gac_jax.drawing.detection_pictures import detection_picture
     from gac_jax.streams import earlier_results, outputs, sources, stop_signals
     from gac_jax.streams.pipeline import StreamPipeline
 

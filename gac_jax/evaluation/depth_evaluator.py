@@ -47,9 +47,9 @@ import numpy as np
 from gac_jax import geometry
 from gac_jax.data.files import read_depth_png, write_png
 from gac_jax.data.loader import Loader, collate
+from gac_jax.drawing.depth_pictures import depth_panel
+from gac_jax.drawing.picture_grid import save_image
 from gac_jax.evaluation.depth_metrics import DepthMetricAccumulator
-from gac_jax.evaluation.depth_pictures import depth_panel
-from gac_jax.evaluation.viz import save_image
 
 MIN_WRITTEN_DEPTH = 1.0 / 256.0  # the smallest non-zero 16-bit value
 MAX_WRITTEN_DEPTH = 65535.0 / 256.0

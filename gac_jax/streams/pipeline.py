@@ -31,7 +31,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from gac_jax.evaluation.detection_pictures import detection_picture
+from gac_jax.drawing.detection_pictures import detection_picture
 from gac_jax.streams.rates import StreamRates, format_rates
 from gac_jax.streams.sources import Frame
 

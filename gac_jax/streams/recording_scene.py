@@ -15,8 +15,8 @@ import functools
 
 import numpy as np
 
-from gac_jax.evaluation.track_pictures import track_color
-from gac_jax.evaluation.viz import class_color
+from gac_jax.drawing.boxes import class_color
+from gac_jax.drawing.track_pictures import track_color
 
 PLANE_PATCH = (40.0, 0.02, 80.0)  # metres: the ground patch's width, thickness, depth
 PLANE_AHEAD = 30.0  # metres ahead of the camera: the patch's centre

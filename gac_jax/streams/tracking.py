@@ -25,7 +25,7 @@ import numpy as np
 from gac_jax.api.tracker import Tracker3D
 from gac_jax.data.files import KittiFormatError
 from gac_jax.data.kitti import KittiObjects
-from gac_jax.evaluation.track_pictures import ImageTrails, track_picture
+from gac_jax.drawing.track_pictures import ImageTrails, track_picture
 from gac_jax.streams.outputs import JsonlResults
 from gac_jax.streams.sources import Frame
 from gac_jax.tracking.tracks import kitti_tracking_lines

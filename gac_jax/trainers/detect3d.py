@@ -35,8 +35,8 @@ from gac_jax.detection.anchor_filter import ground_mask_from_constants
 from gac_jax.detection.anchor_priors import make_detection_constants
 from gac_jax.detection.anchors import generate_anchors
 from gac_jax.detection.detection_loss import detection_loss
+from gac_jax.drawing.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.ap_table import format_table
-from gac_jax.evaluation.detection_pictures import save_evaluation_pictures
 from gac_jax.trainers.common import (
     NonFiniteLossError,  # noqa: F401 - re-exported: callers catch detect3d.NonFiniteLossError
     check_finite,

@@ -238,8 +238,8 @@ def ensure_export(
     An export of other weights (another sha256: a model retrained to the same step, a
     checkpoint replaced, an export from before weights were hashed) is replaced, saying why in
     one line; its int8 model and guard verdicts are then stale by their own records
-    (:mod:`gac_jax.deploy.int8` compares the ``model.onnx`` sha256, :mod:`gac_jax.deploy.
-    guard_verdict` the weights' sha256).
+    (:mod:`gac_jax.deploy.int8` compares the ``model.onnx`` sha256,
+    :mod:`gac_jax.guard.verdict_file` the weights' sha256).
 
     Raises:
       KittiFormatError: an existing export that is corrupted or made for another config or

@@ -3,7 +3,7 @@
 KITTI's depth metrics are means of per-image values (:mod:`gac_jax.evaluation.depth_metrics`),
 so the difference of two runs on the same images is the mean of the per-image differences:
 an additive, non-stepping quantity whose sampling error a paired interval states exactly
-(unlike AP, see :mod:`gac_jax.evaluation.paired_guard`). Both runs are scored on the same
+(unlike AP, see :mod:`gac_jax.guard.detector_rule`). Both runs are scored on the same
 frames. The unit is the *frame*: the left and right images of a frame see the same scene and
 their errors are correlated, so each frame contributes the mean over its images of
 ``candidate - reference``, and the interval is Student's t over the frames.
@@ -17,7 +17,7 @@ strongly correlated frames of one or two drives.
 The rule (``margin`` default 0.2 SILog points, ``alpha`` default 0.05), on SILog (the KITTI
 benchmark's ranking metric), at look ``k`` (the k-th guard run of this model and candidate,
 ``alpha_k = alpha / 2^k``: all looks together spend at most ``alpha``, as
-:func:`~gac_jax.evaluation.paired_proportions.look_alpha`):
+:func:`~gac_jax.guard.paired_proportions.look_alpha`):
 
 * **within**: the interval of the mean SILog difference at ``1 - 2 alpha_k`` (each side at
   ``alpha_k``: two one-sided tests) lies inside ``[-margin, +margin]``.
@@ -40,7 +40,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.special import stdtrit
 
-from gac_jax.evaluation.paired_proportions import look_alpha
+from gac_jax.guard.paired_proportions import look_alpha
 
 MARGIN = 0.2  # SILog points (100 log m)
 ALPHA = 0.05

@@ -8,7 +8,7 @@ import functools
 import cv2
 import numpy as np
 
-from gac_jax.evaluation.viz import _check_image, image_grid
+from gac_jax.drawing.picture_grid import check_image, image_grid
 
 
 @functools.cache
@@ -82,7 +82,7 @@ def depth_panel(
     With ``columns = 1`` (default, suits wide KITTI frames) the panels stack
     vertically.
     """
-    image = _check_image(image)
+    image = check_image(image)
     size = image.shape[1], image.shape[0]
 
     def panel(depth, dilate):

@@ -1,4 +1,4 @@
-"""The depth network's paired guard (gac_jax.evaluation.paired_depth_guard) on constructed runs.
+"""The depth network's paired guard (gac_jax.guard.depth_rule) on constructed runs.
 
 Identical runs -> within; a candidate 0.5 SILog worse on every image -> beyond, saying which
 way; a small noisy change -> undecided with the frames that would decide at the next look,
@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from gac_jax.evaluation import paired_depth_guard as pdg
+from gac_jax.guard import depth_rule as pdg
 
 METRICS = pdg.REPORTED
 

@@ -19,19 +19,19 @@ import numpy as np
 
 from gac_jax.data import transforms
 from gac_jax.data.kitti import KittiObjects, read_label
-from gac_jax.evaluation import viz
+from gac_jax.drawing import boxes, picture_grid
 
 BEV_X_RANGE = (-30.0, 30.0)
 BEV_Z_RANGE = (0.0, 70.0)
 GRID_MAX_WIDTH = 960  # pixels of one cell of grid.png
 
 
-def bev_grid_for_height(height: int) -> viz.BevGrid:
-    """A :class:`~gac_jax.evaluation.viz.BevGrid` (x in [-30, 30] m, z in [0, 70] m), ``height``
+def bev_grid_for_height(height: int) -> boxes.BevGrid:
+    """A :class:`~gac_jax.drawing.boxes.BevGrid` (x in [-30, 30] m, z in [0, 70] m), ``height``
     pixels tall."""
     ppm = (height - 1) / (BEV_Z_RANGE[1] - BEV_Z_RANGE[0])
     step = 10.0 if ppm >= 3.0 else 20.0
-    return viz.BevGrid(BEV_X_RANGE, BEV_Z_RANGE, pixels_per_metre=ppm, grid_step=step)
+    return boxes.BevGrid(BEV_X_RANGE, BEV_Z_RANGE, pixels_per_metre=ppm, grid_step=step)
 
 
 def detection_picture(
@@ -54,7 +54,7 @@ def detection_picture(
       (h, w + Wb, 3) uint8 RGB with ``(h, w) = round(scale (H, W))``, ``Wb`` the width of a
       bird's-eye view ``h`` pixels tall.
     """
-    image = viz._check_image(image)
+    image = picture_grid.check_image(image)
     h, w = image.shape[:2]
     if scale != 1.0:
         size = (max(round(h * scale), 2), max(round(w * scale), 2))
@@ -68,14 +68,14 @@ def detection_picture(
         h, w = size
     grid = bev_grid_for_height(h)
     if grid.size[0] != h:  # rounding of the grid size: drawn apart and resized
-        camera = viz.draw_detections(image, P2, predictions, ground_truth)
-        bev = viz.draw_bev(predictions, ground_truth, grid=grid)
+        camera = boxes.draw_detections(image, P2, predictions, ground_truth)
+        bev = boxes.draw_bev(predictions, ground_truth, grid=grid)
         bev = cv2.resize(bev, (bev.shape[1], h), interpolation=cv2.INTER_AREA)
         return np.concatenate([camera, bev], axis=1)
     out = np.empty((h, w + grid.size[1], 3), np.uint8)
     out[:, :w] = image
-    viz.draw_detections_into(out[:, :w], P2, predictions, ground_truth)
-    viz.draw_bev_into(out[:, w:], predictions, ground_truth, grid)
+    boxes.draw_detections_into(out[:, :w], P2, predictions, ground_truth)
+    boxes.draw_bev_into(out[:, w:], predictions, ground_truth, grid)
     return out
 
 
@@ -129,14 +129,14 @@ def save_pictures(
         pred = detections[fid]
         picture = detection_picture(np.asarray(sample["image"]), sample["P2"], pred, gt)
         path = out_dir / f"{fid}.png"
-        viz.save_image(path, picture)
+        picture_grid.save_image(path, picture)
         written.append(path)
         cells.append(_grid_cell(picture))
         n_gt = "" if gt is None else f", {len(gt)} ground truth"
         captions.append(f"{fid}: {len(pred)} detections{n_gt}")
     if grid and cells:
         path = out_dir / "grid.png"
-        viz.save_image(path, viz.image_grid(cells, captions, columns=1))
+        picture_grid.save_image(path, picture_grid.image_grid(cells, captions, columns=1))
         written.append(path)
     return written
 

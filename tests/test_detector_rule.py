@@ -1,4 +1,4 @@
-"""The paired guard (gac_jax.evaluation.guard_criteria, paired_guard) on constructed cases.
+"""The paired guard (gac_jax.guard.criteria, detector_rule) on constructed cases.
 
 Found objects and false positives agree with the loop transcription of the devkit's
 statistics pass (tests/kitti_devkit_oracle.py) on real KITTI labels. On 1,000 cars, three
@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from gac_jax.data.kitti import KittiObjects, read_label, read_split
-from gac_jax.evaluation import ap_bootstrap
-from gac_jax.evaluation import guard_criteria as gc
-from gac_jax.evaluation import paired_guard as pg
+from gac_jax.guard import ap_bootstrap
+from gac_jax.guard import criteria as gc
+from gac_jax.guard import detector_rule as pg
 from tests import kitti_devkit_oracle as oracle
 
 

@@ -1,6 +1,6 @@
 """Pictures of tracks: each track's box, label and trail in its own colour, on the camera view
 and on the bird's-eye view beside it (the layout of
-:func:`gac_jax.evaluation.detection_pictures.detection_picture`).
+:func:`gac_jax.drawing.detection_pictures.detection_picture`).
 
 * camera view: the 3D box in the track's colour (:func:`track_color`, the same for a track
   in every frame), a label ``#id Car 12.3 m/s``, and a trail: where the box's bottom centre
@@ -25,8 +25,8 @@ import numpy as np
 
 from gac_jax import geometry
 from gac_jax.data import transforms
-from gac_jax.evaluation import viz
-from gac_jax.evaluation.detection_pictures import bev_grid_for_height
+from gac_jax.drawing import boxes
+from gac_jax.drawing.detection_pictures import bev_grid_for_height
 
 ARROW_SECONDS = 0.5  # a velocity arrow ends where the object will be this much later
 TRAIL_SECONDS = 1.0  # a camera-view trail covers this much of the past
@@ -108,7 +108,7 @@ def draw_tracks_camera(
     objects = tracks.to_kitti_objects() if objects is None else objects
     ids = tracks.ids.tolist()
     colors = [track_color(i) for i in ids]
-    viz.draw_objects_into(canvas, objects, P2, color=colors, thickness=thickness,
+    boxes.draw_objects_into(canvas, objects, P2, color=colors, thickness=thickness,
                           show_labels=False)  # fmt: skip
     texts = []
     for k, track_id in enumerate(ids):
@@ -120,19 +120,19 @@ def draw_tracks_camera(
             text += f" {np.linalg.norm(v[[0, 2]]):.1f} m/s"
         texts.append(text)
     # labels inside the boxes' top-left corners, the surest first; one that would cover
-    # another moves below it or is left out (viz's placement of detection labels)
+    # another moves below it or is left out (boxes.place_labels, as for detection labels)
     order = np.argsort(-np.nan_to_num(objects.score, nan=-np.inf), kind="stable")
     corners = np.asarray(objects.bbox, np.float64)[order, :2]
-    spots = viz.place_labels([texts[k] for k in order], corners, canvas.shape[:2], 0.4)
+    spots = boxes.place_labels([texts[k] for k in order], corners, canvas.shape[:2], 0.4)
     for k, spot in zip(order, spots, strict=True):
         if spot is not None:
-            viz.draw_label(canvas, texts[k], spot, colors[k])
+            boxes.draw_label(canvas, texts[k], spot, colors[k])
 
 
 def draw_tracks_bev(
     canvas: np.ndarray,
     tracks,
-    grid: viz.BevGrid,
+    grid: boxes.BevGrid,
     scale: float = 1.0,
     over_ground: bool | None = None,
 ) -> None:
@@ -184,7 +184,7 @@ def track_picture(
 
     Returns:
       (h, w + Wb, 3) uint8 RGB with ``(h, w) = round(scale (H, W))``, as
-      :func:`~gac_jax.evaluation.detection_pictures.detection_picture`.
+      :func:`~gac_jax.drawing.detection_pictures.detection_picture`.
     """
     objects = tracks.to_kitti_objects()
     if scale != 1.0:
@@ -202,7 +202,7 @@ def track_picture(
     draw_tracks_camera(camera, tracks, P2, objects=objects, trails=paths)
     grid = bev_grid_for_height(image.shape[0])
     bev = np.empty((*grid.size, 3), np.uint8)
-    viz.draw_bev_into(bev, objects, grid=grid, colors=[track_color(i) for i in tracks.ids])
+    boxes.draw_bev_into(bev, objects, grid=grid, colors=[track_color(i) for i in tracks.ids])
     bev_scale = 1.0
     if bev.shape[0] != camera.shape[0]:  # rounding of the grid size
         bev_scale = camera.shape[0] / bev.shape[0]

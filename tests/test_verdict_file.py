@@ -1,4 +1,4 @@
-"""Which verdict applies to a run (gac_jax.deploy.guard_verdict), on toy export folders: an
+"""Which verdict applies to a run (gac_jax.guard.verdict_file), on toy export folders: an
 int8 verdict holds only for the int8 model it was decided for, whatever that model was
 calibrated on, and a verdict of an earlier rule is re-decided. No runtime is needed."""
 
@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import pytest
 
-from gac_jax.deploy import guard_verdict as gv
 from gac_jax.deploy.export import artifact
 from gac_jax.deploy.int8 import Int8Settings
+from gac_jax.guard import verdict_file as gv
 
 ONNX = b"a toy exported graph"
 SHA = "5" * 64

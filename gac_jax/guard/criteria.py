@@ -37,7 +37,7 @@ import numpy as np
 
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.evaluation.kitti_object import DIFFICULTIES, MIN_OVERLAPS, DetectionEvalSet
-from gac_jax.evaluation.paired_proportions import paired_table
+from gac_jax.guard.paired_proportions import paired_table
 
 HEADING_TOLERANCE_DEG = 30.0
 SCORE_THRESHOLDS = (0.3, 0.5, 0.7, 0.9)

@@ -17,7 +17,7 @@ equivalence.
 
 **The earlier rule's frames as the unit** (:func:`clustered_interval`; the guard's count
 criteria used it up to verdict rule version 2 and now use
-:mod:`gac_jax.evaluation.frame_betting`; it stays to measure what the current intervals cost,
+:mod:`gac_jax.guard.frame_betting`; it stays to measure what the current intervals cost,
 ``benchmarks/bench_guard_power.py``, and to show that the burst simulations of the tests catch
 it): objects of one frame move together (a
 frame's exposure or a shared feature shifts every object in it), so the interval uses

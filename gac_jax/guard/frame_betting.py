@@ -1,7 +1,7 @@
 """Bounds for a paired count difference with the frame as the unit, by betting: valid for any
 per-frame distribution of the changes within stated per-frame bounds.
 
-The guard's count criteria (:mod:`gac_jax.evaluation.guard_criteria`) give per frame ``f``
+The guard's count criteria (:mod:`gac_jax.guard.criteria`) give per frame ``f``
 its evaluated objects ``n_f`` and the candidate's paired change ``d_f``: objects it found that
 the reference missed minus the reverse (recall rows), or false positives gained minus lost
 (false-positive rows). The difference bounded is ``delta = E[d] / E[n]`` over frames like the

@@ -10,7 +10,7 @@ from gac_jax import geometry
 from gac_jax.data.files import read_image
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.data.sources import KittiDepthSource, KittiObjectSource
-from gac_jax.evaluation import depth_pictures, viz
+from gac_jax.drawing import boxes, depth_pictures, picture_grid
 
 # Largest gap between the projected 3D box and the labelled 2D box on the sample frames is
 # ~3 px for rigid objects and ~10 px for pedestrians (arms and legs stick out of the 3D box).
@@ -43,11 +43,11 @@ def test_boxes_land_on_labelled_objects(frames, tmp_path):
     checked_cars = 0
     for sample in frames:
         image, P2 = sample["image"], sample["P2"]
-        objs = sample["objects"].select(viz.drawable(sample["objects"]))
+        objs = sample["objects"].select(boxes.drawable(sample["objects"]))
         union = np.zeros(image.shape[:2], bool)
         for i in range(len(objs)):
             one = objs.select([i])
-            mask = _drawn(image, viz.draw_objects(image, one, P2, show_labels=False))
+            mask = _drawn(image, boxes.draw_objects(image, one, P2, show_labels=False))
             box = one.bbox[0]
             slack = LABEL_SLACK.get(str(one.type[0]), RIGID_SLACK) + LINE_SLACK
             assert mask.any(), (sample["frame_id"], i)
@@ -67,12 +67,12 @@ def test_boxes_land_on_labelled_objects(frames, tmp_path):
                 x1, y1, x2, y2 = np.round(box).astype(int)
                 assert mask[y1 : y2 + 1, x1 : x2 + 1].sum() > (x2 - x1 + y2 - y1)
         # All objects together (ground-truth style): nothing drawn outside the labelled boxes.
-        together = viz.draw_objects(image, objs, P2, show_labels=False)
+        together = boxes.draw_objects(image, objs, P2, show_labels=False)
         drawn = _drawn(image, together)
         np.testing.assert_array_equal(drawn, union)
-        pic = viz.draw_detections(image, P2, predictions=None, ground_truth=sample["objects"])
+        pic = boxes.draw_detections(image, P2, predictions=None, ground_truth=sample["objects"])
         assert pic.shape == image.shape and pic.dtype == np.uint8
-        viz.save_image(tmp_path / f"{sample['frame_id']}.png", pic)
+        picture_grid.save_image(tmp_path / f"{sample['frame_id']}.png", pic)
         np.testing.assert_array_equal(read_image(tmp_path / f"{sample['frame_id']}.png"), pic)
     assert checked_cars >= 12  # 13 untruncated cars in the vendored frames
 
@@ -82,12 +82,12 @@ def test_predictions_over_ground_truth_with_labels(frames, tmp_path):
     gt = sample["objects"]
     pred = gt.replace(score=np.linspace(0.5, 0.99, len(gt)), rotation_y=gt.rotation_y + 0.2)
     image, P2 = sample["image"], sample["P2"]
-    plain = viz.draw_detections(image, P2, pred, gt, show_labels=False, draw_2d=False)
-    labelled = viz.draw_detections(image, P2, pred, gt, show_labels=True, draw_2d=False)
+    plain = boxes.draw_detections(image, P2, pred, gt, show_labels=False, draw_2d=False)
+    labelled = boxes.draw_detections(image, P2, pred, gt, show_labels=True, draw_2d=False)
     labels = _drawn(plain, labelled)
     assert labels.any()
     # Labels sit inside the top-left corner of their object's drawn (projected, clipped) extent.
-    cars = pred.select(viz.drawable(pred))
+    cars = pred.select(boxes.drawable(pred))
     corners = geometry.box3d_corners(cars.location, cars.dimensions, cars.rotation_y)
     near_corner = np.zeros_like(labels)
     for box in geometry.box2d_from_corners(corners, P2, image.shape[:2]):
@@ -96,10 +96,12 @@ def test_predictions_over_ground_truth_with_labels(frames, tmp_path):
     assert not (labels & ~near_corner).any()
     # Both colours show: pixels within 40 levels of pure GT green / the Car orange.
     close = lambda c: np.all(np.abs(labelled.astype(int) - c) <= 40, axis=2)  # noqa: E731
-    gt_pixels, pred_pixels = close(viz.GT_COLOR).sum(), close(viz.class_color("Car")).sum()
+    gt_pixels, pred_pixels = close(boxes.GT_COLOR).sum(), close(boxes.class_color("Car")).sum()
     print(f"\n000036: {gt_pixels} GT-green and {pred_pixels} Car-orange pixels")
     assert gt_pixels > 500 and pred_pixels > 500
-    viz.save_image(tmp_path / "pred_gt.png", viz.image_grid([labelled, plain], ["labels", "none"]))
+    picture_grid.save_image(
+        tmp_path / "pred_gt.png", picture_grid.image_grid([labelled, plain], ["labels", "none"])
+    )
 
 
 def test_boxes_behind_and_across_the_camera():
@@ -108,15 +110,15 @@ def test_boxes_behind_and_across_the_camera():
     behind = KittiObjects.from_arrays(
         type=["Car"], dimensions=[[1.5, 1.6, 4.0]], location=[[0.0, 1.6, -8.0]], rotation_y=[0.0]
     )
-    assert not _drawn(image, viz.draw_objects(image, behind, P2)).any()
+    assert not _drawn(image, boxes.draw_objects(image, behind, P2)).any()
     # Length along z across the camera (z from -1 to 3): edges are cut at the near plane.
     across = behind.replace(location=np.array([[1.0, 1.6, 1.0]]), rotation_y=np.array([np.pi / 2]))
-    segments, valid = viz.box3d_segments(
+    segments, valid = boxes.box3d_segments(
         across.location, across.dimensions, across.rotation_y, P2, near=0.1
     )
     assert valid.any() and not valid.all()
     assert np.isfinite(segments).all()
-    pic = viz.draw_objects(image, across, P2)
+    pic = boxes.draw_objects(image, across, P2)
     assert _drawn(image, pic).sum() > 1000
 
 
@@ -130,7 +132,7 @@ def test_clip_segments_hand_cases():
             [[5.0, -100.0], [5.0, 100.0]],  # vertical, through
         ]
     )
-    out, ok = viz.clip_segments(segs, (20, 20))  # H = W = 20: [0, 19] x [0, 19]
+    out, ok = boxes.clip_segments(segs, (20, 20))  # H = W = 20: [0, 19] x [0, 19]
     np.testing.assert_array_equal(ok, [True, True, False, True, True])
     np.testing.assert_allclose(out[0], [[0, 5], [10, 5]])
     np.testing.assert_allclose(out[1], segs[1])
@@ -139,9 +141,9 @@ def test_clip_segments_hand_cases():
 
 
 def test_bev_pixels_follow_the_metric_grid():
-    grid = viz.BevGrid()  # x in [-30, 30], z in [0, 70] m at 10 px/m
+    grid = boxes.BevGrid()  # x in [-30, 30], z in [0, 70] m at 10 px/m
     assert grid.size == (701, 601)
-    empty = viz.draw_bev(grid=grid)
+    empty = boxes.draw_bev(grid=grid)
     # Hand-computed: the x = 0 line is column 300, the z = 10 m line row 600, z = 50 m row 200.
     gray, back = (80, 80, 80), (24, 24, 24)
     assert tuple(empty[450, 300]) == gray and tuple(empty[450, 302]) == back
@@ -154,36 +156,36 @@ def test_bev_pixels_follow_the_metric_grid():
         )
 
     # ry = 0: length along +x: x in [3, 7] -> u in [330, 370]; z in [29, 31] -> v in [390, 410].
-    mask = _drawn(empty, viz.draw_bev(box(0.0), grid=grid))
+    mask = _drawn(empty, boxes.draw_bev(box(0.0), grid=grid))
     assert _inside(mask, [330, 390, 370, 410], 2)
     for u, v in [(330, 390), (370, 390), (330, 410), (370, 410)]:
         assert mask[v - 1 : v + 2, u - 1 : u + 2].any()
     assert mask[400, 360] and not mask[400, 340]  # heading mark towards +x (right)
     # ry = pi/2 heads to -z (towards the camera, down the picture); ground truth in GT_COLOR.
-    pic = viz.draw_bev(None, box(np.pi / 2), grid=grid)
+    pic = boxes.draw_bev(None, box(np.pi / 2), grid=grid)
     mask = _drawn(empty, pic)
     assert _inside(mask, [340, 380, 360, 420], 2)
     assert mask[410, 350] and not mask[390, 350]
     assert np.all(pic[mask.nonzero()].max(axis=0) <= [255, 255, 255])
-    assert (np.all(pic == viz.GT_COLOR, axis=2)).sum() > 100
+    assert (np.all(pic == boxes.GT_COLOR, axis=2)).sum() > 100
 
 
 def test_image_grid_shape_and_placement():
     rng = np.random.default_rng(0)
     pics = [rng.integers(0, 256, (30, 40, 3), dtype=np.uint8) for _ in range(5)]
-    out = viz.image_grid(pics, [f"frame {i}" for i in range(5)], columns=2, pad=4)
+    out = picture_grid.image_grid(pics, [f"frame {i}" for i in range(5)], columns=2, pad=4)
     assert out.shape == (3 * (30 + 18) + 4 * 4, 2 * 40 + 3 * 4, 3)
     np.testing.assert_array_equal(out[4 + 18 : 4 + 18 + 30, 4:44], pics[0])
     np.testing.assert_array_equal(out[4 + 18 : 4 + 18 + 30, 48:88], pics[1])
     np.testing.assert_array_equal(out[2 * 52 + 4 + 18 : 2 * 52 + 52, 4:44], pics[4])
     assert out[4 : 4 + 18, 4:44].any()  # caption text
-    bare = viz.image_grid(pics[:3], None, columns=3, pad=0)
+    bare = picture_grid.image_grid(pics[:3], None, columns=3, pad=0)
     assert bare.shape == (30, 120, 3)
     np.testing.assert_array_equal(bare[:, 80:], pics[2])
-    small = viz.image_grid([pics[0], np.zeros((10, 20), np.uint8)], columns=1, pad=0)
+    small = picture_grid.image_grid([pics[0], np.zeros((10, 20), np.uint8)], columns=1, pad=0)
     assert small.shape == (60, 40, 3)
     with pytest.raises(ValueError, match="captions"):
-        viz.image_grid(pics, ["a"])
+        picture_grid.image_grid(pics, ["a"])
 
 
 @pytest.mark.parametrize("scale", ["inverse", "log"])
@@ -236,7 +238,7 @@ def test_depth_panel_on_real_frame(kitti_samples, tmp_path):
     luma = pred_pic[horizon + 2 :, w // 2].astype(float) @ [0.299, 0.587, 0.114]
     assert np.all(np.diff(luma) >= -0.1)  # the road gets nearer (brighter) downwards
     assert luma[-1] > luma[0] + 20
-    viz.save_image(tmp_path / "depth_panel.png", panel)
+    picture_grid.save_image(tmp_path / "depth_panel.png", panel)
     # Smaller prediction (network resolution) is resized to the image.
     small = cv2.resize(prediction, (w // 4, h // 4), interpolation=cv2.INTER_NEAREST)
     assert depth_pictures.depth_panel(image, small).shape == (2 * (h + 18) + 3 * 4, w + 8, 3)
@@ -249,7 +251,9 @@ def test_2d_boxes_trace_the_bbox_border():
     )
     mask = _drawn(
         image,
-        viz.draw_objects(image, objs, np.eye(3, 4), draw_3d=False, draw_2d=True, show_labels=False),
+        boxes.draw_objects(
+            image, objs, np.eye(3, 4), draw_3d=False, draw_2d=True, show_labels=False
+        ),
     )
     v, u = np.nonzero(mask)
     on_border = (np.minimum(np.abs(u - 20), np.abs(u - 120)) <= 1) | (
@@ -264,21 +268,21 @@ def test_wireframes_in_one_call_equal_segment_by_segment(frames):
     cv2.line per segment in the same order, byte for byte (the reference loop written out)."""
     sample = next(f for f in frames if f["frame_id"] == "000036")
     gt = sample["objects"]
-    objects = gt.select(viz.drawable(gt))
+    objects = gt.select(boxes.drawable(gt))
     image, P2 = np.asarray(sample["image"]), sample["P2"]
-    segments, valid = viz.box3d_segments(
+    segments, valid = boxes.box3d_segments(
         objects.location, objects.dimensions, objects.rotation_y, P2
     )
-    clipped, visible = viz.clip_segments(segments, image.shape[:2])
+    clipped, visible = boxes.clip_segments(segments, image.shape[:2])
     reference = image.copy()
     for k in range(len(objects)):
-        colour = viz.class_color(objects.type[k])
+        colour = boxes.class_color(objects.type[k])
         for (p, q), ok in zip(clipped[k], visible[k] & valid[k], strict=True):
             if ok:
                 a = tuple(int(round(c * 16)) for c in p)
                 b = tuple(int(round(c * 16)) for c in q)
                 cv2.line(reference, a, b, colour, 2, cv2.LINE_AA, 4)
-    drawn = viz.draw_objects(image, objects, P2, show_labels=False)
+    drawn = boxes.draw_objects(image, objects, P2, show_labels=False)
     np.testing.assert_array_equal(drawn, reference)
 
 
@@ -286,29 +290,29 @@ def test_labels_of_nearby_boxes_do_not_overlap(frames):
     """Labels are placed highest score first; one that would cover another moves below it
     or is left out, never drawn over it."""
     sample = next(f for f in frames if f["frame_id"] == "000036")
-    gt = sample["objects"].select(viz.drawable(sample["objects"]))
+    gt = sample["objects"].select(boxes.drawable(sample["objects"]))
     # every box twice, shifted 0.3 m: their labels would land on each other
     crowd = KittiObjects.concatenate([gt, gt.replace(location=gt.location + [0.3, 0.0, 0.0])])
     crowd = crowd.replace(score=np.linspace(0.2, 0.95, len(crowd)))
     texts = [f"{t} {s:.2f}" for t, s in zip(crowd.type, crowd.score, strict=True)]
     corners = np.repeat(np.array([[100.0, 50.0]]), len(texts), axis=0)
-    spots = viz.place_labels(texts, corners, (375, 1242), 0.4)
+    spots = boxes.place_labels(texts, corners, (375, 1242), 0.4)
     placed = [s for s in spots if s is not None]
     assert len(placed) == 4 and spots[0] == (100, 50, *spots[0][2:])  # the first keeps its place
     cover = np.zeros((375, 1242), int)
     for x, y, w, h, _ in placed:
         cover[y : y + h, x : x + w] += 1
     assert cover.max() == 1
-    pic = viz.draw_objects(sample["image"], crowd, sample["P2"])
+    pic = boxes.draw_objects(sample["image"], crowd, sample["P2"])
     assert pic.shape == sample["image"].shape
 
 
 def test_bev_axis_labels_do_not_collide():
     """The bottom-left corner holds the "0 m" label alone (the x = -30 label sat on it), and
     a label that would be cut by the picture's edge is left out."""
-    grid = viz.BevGrid(pixels_per_metre=5.3)  # the grid of a 375-row picture
+    grid = boxes.BevGrid(pixels_per_metre=5.3)  # the grid of a 375-row picture
     h, w = grid.size
-    empty = viz.draw_bev(grid=grid)
+    empty = boxes.draw_bev(grid=grid)
     back, line = (24, 24, 24), (80, 80, 80)
     alone = np.empty_like(empty)
     alone[:] = back

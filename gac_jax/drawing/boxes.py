@@ -1,4 +1,4 @@
-"""Pictures of detections (OpenCV; RGB uint8 in, RGB uint8 out).
+"""Boxes drawn on a picture (OpenCV; RGB uint8 in, RGB uint8 out).
 
 * :func:`draw_detections` / :func:`draw_objects`: 3D boxes as projected
   wireframes (edges cut at the camera's near plane, then clipped to the image)
@@ -8,11 +8,9 @@
 * :func:`draw_bev` on a :class:`BevGrid`: top-down view (camera x to the
   right, z up the picture) with a metre grid, boxes as rotated rectangles and a
   heading mark from the centre to the front edge.
-* :func:`image_grid`: tiles of several pictures with captions.
 
-Depth maps: :mod:`gac_jax.evaluation.depth_pictures`.
-
-Nothing here writes files except :func:`save_image`.
+Tiles of several pictures and the PNG writer: :mod:`gac_jax.drawing.picture_grid`; depth
+maps: :mod:`gac_jax.drawing.depth_pictures`. Nothing here writes files.
 """
 
 from __future__ import annotations
@@ -27,9 +25,7 @@ import numpy as np
 
 from gac_jax import geometry
 from gac_jax.data.kitti import KittiObjects
-from gac_jax.evaluation.picture_grid import check_image as _check_image
-from gac_jax.evaluation.picture_grid import image_grid as image_grid
-from gac_jax.evaluation.picture_grid import save_image as save_image
+from gac_jax.drawing.picture_grid import check_image as _check_image
 
 Color = tuple[int, int, int]
 

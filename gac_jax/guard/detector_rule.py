@@ -3,14 +3,14 @@
 AP|R40 of a few thousand frames moves in ~2 AP steps when a detection or two cross an IoU
 threshold, so an AP difference alone cannot say whether a precision is within a small
 tolerance. The guard decides on paired outcomes of the two runs on the same frames
-(:mod:`gac_jax.evaluation.guard_criteria`: recall at several score thresholds, false positives
+(:mod:`gac_jax.guard.criteria`: recall at several score thresholds, false positives
 per frame above each, heading within 30 degrees, heading and centre error quantile shifts;
 per class and difficulty) **and** on the paired AP difference itself
-(:mod:`gac_jax.evaluation.ap_bootstrap`: AP|R11 and AP|R40, 2D, BEV, 3D and AOS, every
+(:mod:`gac_jax.guard.ap_bootstrap`: AP|R11 and AP|R40, 2D, BEV, 3D and AOS, every
 difficulty, with a paired frame-bootstrap standard error).
 
 Intervals: a count criterion's are tests by betting on its per-frame changes
-(:mod:`gac_jax.evaluation.frame_betting`), the frame as the unit, valid for any distribution
+(:mod:`gac_jax.guard.frame_betting`), the frame as the unit, valid for any distribution
 of the changes over frames (bursts, losses only in crowded frames) within a per-frame bound:
 a recall row's frame changes at most its objects, and no frame has more than the largest
 guard frame; a false-positive row's frame gains or loses at most ``fp_cap`` (default 20)
@@ -55,10 +55,10 @@ from scipy.special import ndtri
 
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.detection.nms import box_iou_matrix
-from gac_jax.evaluation import frame_betting as fb
-from gac_jax.evaluation.frame_betting import FP_CAP, FrameBounds
-from gac_jax.evaluation.guard_criteria import wrap
-from gac_jax.evaluation.paired_proportions import holm, look_alpha, mcnemar_p
+from gac_jax.guard import frame_betting as fb
+from gac_jax.guard.criteria import wrap
+from gac_jax.guard.frame_betting import FP_CAP, FrameBounds
+from gac_jax.guard.paired_proportions import holm, look_alpha, mcnemar_p
 
 MARGIN = 0.5  # points (percent of the objects) of found-rate / false positives
 AP_MARGIN = 1.0  # AP points
@@ -176,11 +176,11 @@ def decide(
 
     Args:
       tables: ``{"Car moderate 3d@0.70": table, ...}``
-        (:func:`~gac_jax.evaluation.guard_criteria.guard_tables`, with per-frame counts).
+        (:func:`~gac_jax.guard.criteria.guard_tables`, with per-frame counts).
       frames: the frames the tables come from.
       look: which guard run of this model and candidate this is (1, 2, ...).
       ap: ``{"Car AP40 3d@0.70 moderate": {'diff', 'se'}, ...}``
-        (:func:`~gac_jax.evaluation.ap_bootstrap.paired_ap_bootstrap`), or None.
+        (:func:`~gac_jax.guard.ap_bootstrap.paired_ap_bootstrap`), or None.
       fp_cap: false positives one frame may gain or lose (:class:`FrameBounds`).
 
     Returns:
