@@ -143,8 +143,8 @@ def clip_variants(frames: int) -> dict[str, list[np.ndarray]]:
     from gac_jax.data.files import read_image
     from gac_jax.data.kitti import KittiObjects
     from gac_jax.data.kitti_tracking import KittiTrackingLayout
-    from gac_jax.evaluation import viz
     from gac_jax.drawing.detection_pictures import bev_grid_for_height, detection_picture
+    from gac_jax.evaluation import viz
 
     layout, sequence = KittiTrackingLayout.locate(clip_sequence(0))
     out: dict[str, list[np.ndarray]] = {}
