@@ -147,3 +147,26 @@ def test_a_worker_exits_when_its_parent_is_killed(tmp_path):
     while alive(child) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not alive(child)
+
+
+def test_sigterm_while_generating_the_dataset_stops_at_once(tmp_path):
+    """A stop signal during the first run's dataset generation stops it within a frame or two
+    (exit 75, what was written kept, one line saying so), not after the whole dataset."""
+    cmd = [sys.executable, str(REPO / "train.py"), "--task", "detect3d", "--config", CONFIG]
+    cmd += ["--workdir", str(tmp_path / "w"), "data.synthetic.num_frames=600"]
+    env = dict(os.environ, PYTHONPATH=str(REPO), GAC_JAX_CACHE=str(tmp_path / "cache"))
+    proc = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True
+    )
+    try:
+        pngs = lambda: list((tmp_path / "cache").rglob("image_2/*.png"))  # noqa: E731
+        wait_for(lambda: len(pngs()) >= 3, proc, 120, "the first frames")
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    text = out.decode()
+    assert proc.returncode == 75, text[-2000:]
+    assert "stopped while generating the embedded dataset" in text, text[-2000:]
+    assert 3 <= len(pngs()) < 300, text[-500:]  # far from the whole dataset

@@ -72,20 +72,30 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
     root = synthetic_dataset_dir(cfg)
     if jax.process_index() == 0:
         from gac_jax.data.synthetic import generate_dataset
+        from gac_jax.data.synthetic.generated_dir import GenerationStoppedError
+        from gac_jax.training import multiprocess, stopping
 
         s = cfg.synthetic
-        result = generate_dataset(
-            root,
-            num_frames=s.num_frames,
-            seed=s.seed,
-            height=s.height,
-            width=s.width,
-            val_fraction=s.val_fraction,
-            rig_set=s.get("rigs", "kitti"),
-            randomize=float(s.get("randomize", 0.0)),
-            workers=s.get("workers") or None,  # 0 / absent: one per core
-            progress=True,  # what, where and about how long; then a bar or a line per ~10 %
-        )
+        try:
+            result = generate_dataset(
+                root,
+                num_frames=s.num_frames,
+                seed=s.seed,
+                height=s.height,
+                width=s.width,
+                val_fraction=s.val_fraction,
+                rig_set=s.get("rigs", "kitti"),
+                randomize=float(s.get("randomize", 0.0)),
+                workers=s.get("workers") or None,  # 0 / absent: one per core
+                progress=True,  # what, where and about how long; then a bar or a line per ~10 %
+                should_stop=stopping.stop_requested,  # a stop signal stops it at once
+            )
+        except GenerationStoppedError as e:
+            raise multiprocess.PreemptedError(
+                0,
+                f"stopped while generating the embedded dataset ({e.done} of {e.total} frames "
+                f"written, kept in {root}); run the same command to finish it and train",
+            ) from None
         if result.generated == 0:
             say(f"reusing the embedded dataset ({result.num_frames} frames) in {root}")
     from gac_jax.training import multiprocess

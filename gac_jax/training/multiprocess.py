@@ -58,9 +58,9 @@ class PeerLostError(RuntimeError):
 class PreemptedError(RuntimeError):
     """All processes stopped at the same step after SIGTERM/SIGINT, with a checkpoint saved."""
 
-    def __init__(self, step: int):
+    def __init__(self, step: int, message: str | None = None):
         super().__init__(
-            f"stopped at step {step}, checkpoint saved; run the same command to resume"
+            message or f"stopped at step {step}, checkpoint saved; run the same command to resume"
         )
         self.step = step
 

@@ -85,6 +85,12 @@ def _watch_stop_signals(read_fd: int, multi: bool) -> None:
                 os.kill(os.getpid(), signal.SIGTERM)  # JAX's preemption notifier takes it on
 
 
+def stop_requested() -> bool:
+    """Whether a stop signal arrived (this process; no synchronisation): for work before the
+    first step, such as generating the embedded dataset, which stops at once."""
+    return _stop["requested"]
+
+
 def preemption_requested(step: int) -> bool:
     """True at the step where the run stops after a SIGTERM or SIGINT (see
     :func:`install_stop_handlers`).

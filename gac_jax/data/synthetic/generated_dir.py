@@ -132,8 +132,24 @@ def remove_temporaries(root: Path, owned) -> None:
                 p.unlink(missing_ok=True)
 
 
+class GenerationStoppedError(Exception):
+    """Generation stopped on request (``should_stop``); what was written is kept, and the
+    same call finishes it."""
+
+    def __init__(self, done: int, total: int):
+        super().__init__(f"stopped after {done} of {total} items")
+        self.done, self.total = done, total
+
+
 def run_jobs(
-    fn, job, todo: list, workers: int | None, progress: bool, desc: str, announce=None
+    fn,
+    job,
+    todo: list,
+    workers: int | None,
+    progress: bool,
+    desc: str,
+    announce=None,
+    should_stop=None,
 ) -> list[float]:
     """Calls ``fn(job, item)`` for every item of ``todo`` in ``workers`` processes (default: one
     per core; 1 = in this process), in order; returns what the calls returned (seconds).
@@ -142,6 +158,9 @@ def run_jobs(
     given) returns the line printed before the rest (what is made, where, about how long);
     then a bar on a terminal or a line every ~10 % (:mod:`gac_jax.progress`). The pool uses
     forkserver (spawn where there is none) and never outlives this process.
+
+    ``should_stop``: a callable polled after every item; when it returns True the items not
+    started are cancelled, those running finish, and :class:`GenerationStoppedError` is raised.
     """
     if workers is None:
         workers = os.cpu_count() or 1
@@ -157,12 +176,15 @@ def run_jobs(
         rest = todo[len(seconds) :]
         if workers == 1 or len(rest) <= 1:
             for item in rest:
+                if should_stop is not None and should_stop():
+                    raise GenerationStoppedError(len(seconds), len(todo))
                 seconds.append(fn(job, item))
                 bar.update(1)
             return seconds
         methods = multiprocessing.get_all_start_methods()
         context = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
-        chunk = max(1, min(16, len(rest) // (workers * 8)))
+        # (a few items per task: a stop waits for the tasks running, at most a few items long)
+        chunk = max(1, min(4, len(rest) // (workers * 8)))
         with concurrent.futures.ProcessPoolExecutor(
             max_workers=min(workers, len(rest)),
             mp_context=context,
@@ -172,4 +194,7 @@ def run_jobs(
             for dt in pool.map(fn, [job] * len(rest), rest, chunksize=chunk):
                 seconds.append(dt)
                 bar.update(1)
+                if should_stop is not None and should_stop():
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    raise GenerationStoppedError(len(seconds), len(todo))
         return seconds

@@ -305,6 +305,7 @@ def generate_dataset(
     overwrite: bool = False,
     progress: bool = False,
     shard: tuple[int, int] | None = None,
+    should_stop=None,
 ) -> GenerationResult:
     """Generates (or completes) a synthetic KITTI-format dataset in ``out_dir``.
 
@@ -335,6 +336,9 @@ def generate_dataset(
         processes or on other machines sharing ``out_dir``; their frames are the bytes one
         run writes, and whichever finds every frame present marks the dataset complete
         (``GenerationResult.complete``).
+      should_stop: polled after every frame; True stops with
+        :class:`~gac_jax.data.synthetic.generated_dir.GenerationStoppedError` (the frames written
+        are kept: the same call later finishes the dataset).
 
     Raises:
       ValueError: bad arguments, or ``out_dir`` holds something else.
@@ -392,7 +396,7 @@ def generate_dataset(
             for i in todo
             if not _complete_by_linking(frame_paths(root, i, frame_rigs[i], split_of[i], rig_set))
         ]
-    seconds = _run(_Job(str(root), spec, split_of), todo, workers, progress)
+    seconds = _run(_Job(str(root), spec, split_of), todo, workers, progress, should_stop)
 
     for name, ids in {**splits, **subsets}.items():
         write_split(root / "ImageSets" / f"{name}.txt", [f"{i:06d}" for i in ids])
@@ -413,7 +417,7 @@ def generate_dataset(
     return GenerationResult(root, num_frames, len(todo), seconds, complete)
 
 
-def _run(job: _Job, todo: list[int], workers: int | None, progress: bool) -> list[float]:
+def _run(job: _Job, todo: list[int], workers: int | None, progress: bool, should_stop=None):
     spec, total = job.spec, job.spec.num_frames
     what = f"{total} frames" if len(todo) == total else f"{len(todo)} missing of {total} frames"
 
@@ -424,4 +428,6 @@ def _run(job: _Job, todo: list[int], workers: int | None, progress: bool) -> lis
             f"({first_s:.2f} s per frame measured, {parallel} at a time); later runs reuse it"
         )
 
-    return run_jobs(_write_frame, job, todo, workers, progress, "synthetic KITTI", announce)
+    return run_jobs(
+        _write_frame, job, todo, workers, progress, "synthetic KITTI", announce, should_stop
+    )
