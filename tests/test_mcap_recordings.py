@@ -7,6 +7,7 @@ writer's file reads back to its last whole chunk, as does the partial MP4 of a k
 from __future__ import annotations
 
 import errno
+import importlib.util
 import io
 import json
 import os
@@ -352,7 +353,8 @@ def test_the_mcap_of_a_stream_holds_its_result_files_and_poses(
 ):
     """``--mcap`` (with ``--poses``; ros2: ``--track`` too): one message per frame on every
     channel; the cubes are the result files' boxes to their printed digits (6 decimals), the
-    transforms the poses, the stamps the frames' times, decoded by the profile's library."""
+    transforms the poses, the stamps the frames' times, decoded by the profile's library
+    (ros2: and by rosbags, when installed, to the same fields: tests/test_ros2_bag.py)."""
     from mcap.reader import make_reader
 
     from gac_jax.data.kitti import read_label
@@ -381,6 +383,13 @@ def test_the_mcap_of_a_stream_holds_its_result_files_and_poses(
         for _, channel, message, decoded in reader.iter_decoded_messages():
             assert message.log_time == round(len(seen.get(channel.topic, [])) / 10.0 * 1e9)
             seen.setdefault(channel.topic, []).append(decoded)
+    if profile == "ros2" and importlib.util.find_spec("rosbags"):  # the dev extra
+        from test_ros2_bag import plain, read_bag
+
+        bag, _ = read_bag(out / "run.mcap")  # rosbags' reading: the same, field by field
+        assert {t: [plain(m) for _, m in ms] for t, ms in bag.items()} == {
+            t: [plain(m) for m in ms] for t, ms in seen.items()
+        }
     for i in range(n):
         if profile == "ros2":
             want = tracking_frame(out / "tracking" / "0000.txt", i)
