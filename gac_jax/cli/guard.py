@@ -341,9 +341,10 @@ def print_report(report: dict, ref_ms) -> None:
         beyond = {n: r for n, r in rows.items() if r["status"] == "beyond"}
         open_ = [n for n, r in rows.items() if r["status"] == "undecided"]
         shown = beyond | {n: rows[n] for n in open_[:SHOWN_UNDECIDED]}
+        within = sum(r["status"] == "within" for r in rows.values())
         print(
             f"\n{key}: look {d['look']} (alpha {d['alpha_look']:.4g}); "
-            f"{len(rows) - len(shown)} of {len(rows)} criteria within their margins"
+            f"{within} of {len(rows)} criteria within their margins"
             + ("; the others (lost / gained of n, or AP +- bootstrap se; points):" if shown else "")
         )
         for name, r in shown.items():
