@@ -27,10 +27,11 @@ Guard frames: ``--guard-data DIR`` (a KITTI-format root, e.g. generated frames t
 saw: ``python -m gac_jax.data.synthetic --out DIR --num 3200 --seed 2 --val-fraction 0.9375``)
 split ``--split`` (default ``val``), else the run's own val split; ``--frames N`` takes the
 first N (whole batches). Result files go to ``W/eval/guard_<data>_<split>/<candidate>/data``,
-one per frame as they are made; a rerun resumes them (a folder made from other weights, by
-their sha256, or another exported network starts again; one made with other settings is
-refused). The verdicts are bound to the weights' sha256, the exported graph, the int8 model,
-the runtime's version and the score threshold (:mod:`gac_jax.guard.verdict_file`).
+one per frame as they are made, and the guard decides on what they hold; a rerun resumes them
+(a folder made from other weights, by their sha256, or another exported network starts again;
+one made with other settings is refused). The verdicts are bound to the weights' sha256, the
+exported graph, the int8 model, the runtime's version and the score threshold
+(:mod:`gac_jax.guard.verdict_file`).
 
 A depth workdir (``python train.py --task depth``) gets the depth guard instead: the paired
 per-frame SILog difference, margin 0.2 (:mod:`gac_jax.cli.guard_depth`).
@@ -134,14 +135,16 @@ def _folder(key: str, int8) -> str:
 
 
 def _predict(workdir, config, step, source, runtime, precision, int8, out, threads, batches):
-    """Detections ``{frame id: KittiObjects}`` of one runtime/precision (resumable files in
-    ``out/data``), the median model time per frame (ms; None when all were resumed), the
-    detector and the exported network's identity (None for jax)."""
+    """Detections ``{frame id: KittiObjects}`` of one runtime/precision as its resumable
+    files in ``out/data`` hold them (a fresh run and a resumed one decide alike), the median
+    model time per frame (ms; None when all were resumed), the detector and the exported
+    network's identity (None for jax)."""
     import jax.numpy as jnp
     import numpy as np
 
     from gac_jax.cli.evaluate_detector import run_settings
     from gac_jax.cli.result_folder import check_resumable
+    from gac_jax.data.kitti import read_label
     from gac_jax.deploy.runtime_choice import default_export_dir, use_runtime
     from gac_jax.guard.verdict_file import network_identity
     from gac_jax.trained.detector import evaluator_for, load_detector
@@ -161,10 +164,13 @@ def _predict(workdir, config, step, source, runtime, precision, int8, out, threa
     ids = evaluator.frame_ids()[: batches * evaluator.batch_size]
     if runtime == "jax" and not all((out / "data" / f"{i}.txt").exists() for i in ids):
         evaluator.compile(detector.variables, (config.data.height, config.data.width))
-    found, _ = evaluator.predict_split(detector.variables, out / "data", True, batches)
+    evaluator.predict_split(detector.variables, out / "data", True, batches)
     per_frame = [b["model_s"] / b["frames"] for b in evaluator.batch_timings if b["frames"]]
     model_ms = 1e3 * float(np.median(per_frame)) if per_frame else None
-    return {i: found[i] for i in ids}, model_ms, detector, network
+    # the detections as the result files hold them (boxes to 0.01 px), also for the frames
+    # predicted now: a rerun (the next look) resumes from the files and must see the same
+    found = {i: read_label(out / "data" / f"{i}.txt", with_score=True) for i in ids}
+    return found, model_ms, detector, network
 
 
 def guard_workdir(args) -> dict:
@@ -340,9 +346,10 @@ def print_report(report: dict, ref_ms) -> None:
         beyond = {n: r for n, r in rows.items() if r["status"] == "beyond"}
         open_ = [n for n, r in rows.items() if r["status"] == "undecided"]
         shown = beyond | {n: rows[n] for n in open_[:SHOWN_UNDECIDED]}
+        within = sum(r["status"] == "within" for r in rows.values())
         print(
             f"\n{key}: look {d['look']} (alpha {d['alpha_look']:.4g}); "
-            f"{len(rows) - len(shown)} of {len(rows)} criteria within their margins"
+            f"{within} of {len(rows)} criteria within their margins"
             + ("; the others (lost / gained of n, or AP +- bootstrap se; points):" if shown else "")
         )
         for name, r in shown.items():
