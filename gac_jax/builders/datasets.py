@@ -69,11 +69,12 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
         return root
     if cfg.source != "synthetic":
         raise ValueError(f"data.source must be 'synthetic' or 'kitti', got {cfg.source!r}")
+    from gac_jax.training import multiprocess, stopping
+
     root = synthetic_dataset_dir(cfg)
     if jax.process_index() == 0:
         from gac_jax.data.synthetic import generate_dataset
         from gac_jax.data.synthetic.generated_dir import GenerationStoppedError
-        from gac_jax.training import multiprocess, stopping
 
         s = cfg.synthetic
         try:
@@ -98,8 +99,6 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
             ) from None
         if result.generated == 0:
             say(f"reusing the embedded dataset ({result.num_frames} frames) in {root}")
-    from gac_jax.training import multiprocess
-
     multiprocess.barrier("dataset_ready")  # the others wait (with a timeout) for process 0
     return root
 
