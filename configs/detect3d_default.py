@@ -48,7 +48,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.crop_top = 100
     c.data.height = 160
     c.data.width = 720
-    c.data.reproject_boxes = False  # 2D targets = labelled (visible) boxes, as evaluated
+    c.data.reproject_boxes = False  # 2D targets = the labelled boxes, as evaluated
     # other cameras' tone curves, white balance, blur, noise and JPEG (data/camera_effects.py),
     # besides the reference's photometric distortion: for frames of real cameras
     c.data.camera_effects = True

@@ -108,8 +108,8 @@ def assert_labels_match_render(frame, objects, P2, size) -> int:
     for line, i in enumerate(frame.label_source):
         rr, cc = np.nonzero(object_ids == i)
         x1, y1, x2, y2 = cc.min(), rr.min(), cc.max(), rr.max()
-        np.testing.assert_allclose(objects.bbox[line], [x1, y1, x2, y2], atol=1.0)
-        if objects.type[line] == "DontCare":
+        if objects.type[line] == "DontCare":  # the extent of its visible pixels
+            np.testing.assert_allclose(objects.bbox[line], [x1, y1, x2, y2], atol=1.0)
             continue
         depth = frame.view.depth[rr, cc].astype(np.float64)
         pts = unproject(np.stack([cc, rr], 1).astype(np.float64), depth, P2)
@@ -122,6 +122,8 @@ def assert_labels_match_render(frame, objects, P2, size) -> int:
         hull = box2d_from_corners(corners, P2, size)[0]
         assert hull[0] <= x1 + 1 and hull[1] <= y1 + 1 and hull[2] >= x2 - 1
         assert hull[3] >= y2 - 1
+        # ... and is the 2D box, as on KITTI's labels (clipped to the image)
+        np.testing.assert_allclose(objects.bbox[line], hull, atol=0.006)
         checked += 1
     return checked
 

@@ -18,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import shapely
@@ -153,6 +154,9 @@ def test_depth_layout_and_raw_calibration(dataset, frames):
 
 
 def test_labels_match_object_masks(dataset, frames):
+    # A labelled object's 2D box is the clipped projection of its 3D box (KITTI's own
+    # labels are: test_kitti_label_boxes_are_projected_3d_boxes), which holds its visible
+    # pixels; a DontCare box is the extent of the visible pixels.
     for i, frame in enumerate(frames):
         objects = _labels(dataset, i)
         ids = frame.views[2].object_ids
@@ -161,15 +165,49 @@ def test_labels_match_object_masks(dataset, frames):
         assert sorted(frame.label_source.tolist()) == sorted(visible)  # each visible object once
         for line, k in enumerate(frame.label_source):
             rr, cc = np.nonzero(ids == k)
-            extent = [cc.min(), rr.min(), cc.max(), rr.max()]
-            np.testing.assert_allclose(objects.bbox[line], extent, atol=1.0)
+            extent = np.array([cc.min(), rr.min(), cc.max(), rr.max()], float)
+            height = extent[3] - extent[1] + 1
+            obj = frame.scene.objects[k]
             if objects.type[line] != "DontCare":
-                assert objects.type[line] == frame.scene.objects[k].type
-                height = extent[3] - extent[1] + 1
+                assert objects.type[line] == obj.type
                 assert height >= 20 * SIZE[0] / 375 and objects.location[line, 2] <= 70
+                corners = box3d_corners(obj.location[None], obj.dimensions[None], [obj.rotation_y])
+                projected = box2d_from_corners(corners, frame.calib.P2, SIZE)[0]
+                np.testing.assert_allclose(objects.bbox[line], projected, atol=0.006)
+                box = objects.bbox[line]
+                assert (extent[:2] >= box[:2] - 1.0).all() and (extent[2:] <= box[2:] + 1.0).all()
+                assert (box[:2] >= 0).all() and box[2] <= SIZE[1] - 1 and box[3] <= SIZE[0] - 1
             else:
-                obj = frame.scene.objects[k]
-                assert (extent[3] - extent[1] + 1) < 20 * SIZE[0] / 375 or obj.location[2] > 70
+                np.testing.assert_allclose(objects.bbox[line], extent, atol=1.0)
+                assert height < 20 * SIZE[0] / 375 or obj.location[2] > 70
+
+
+def test_kitti_label_boxes_are_projected_3d_boxes(kitti_samples_full):
+    # What the generated labels copy: on KITTI's own labels, a Car's 2D box is the
+    # projection of its 3D box clipped to the image, whatever its occlusion; it is not the
+    # extent of its visible pixels (which would shrink with occlusion).
+    root = kitti_samples_full / "object" / "training"
+    names = kitti.read_split(kitti_samples_full / "object" / "ImageSets" / "labeled.txt")
+    ratios = {0: [], 1: [], 2: []}
+    for name in names:
+        labels = kitti.read_label(root / "label_2" / f"{name}.txt")
+        P2 = kitti.read_calib(root / "calib" / f"{name}.txt").P2
+        height, width = cv2.imread(str(root / "image_2" / f"{name}.png")).shape[:2]
+        for i in np.flatnonzero(labels.type == "Car"):
+            corners = box3d_corners(
+                labels.location[i][None], labels.dimensions[i][None], [labels.rotation_y[i]]
+            )
+            projected = box2d_from_corners(corners, P2, (height, width))[0]
+            box = labels.bbox[i]
+            if box[3] - box[1] < 25 or labels.truncated[i] > 0.1:
+                continue
+            size = np.array([box[2] - box[0], box[3] - box[1]])
+            ratios[int(labels.occluded[i])].append(size / (projected[2:] - projected[:2]))
+    for level, r in ratios.items():
+        r = np.array(r)
+        print(f"occlusion {level}: {len(r)} cars, median box / projection (w, h) {np.median(r, 0)}")
+        assert len(r) >= 5
+        np.testing.assert_allclose(np.median(r, axis=0), 1.0, atol=0.03)
 
 
 def test_dense_depth_on_labelled_boxes(dataset, frames):
@@ -362,7 +400,7 @@ def test_same_seed_same_bytes_any_workers(dataset, tmp_path):
 # sha256 of the sorted {path: sha256} of the ``dataset`` fixture's files. The frames'
 # bytes must not change when the clips' code changes; change this only together with
 # writer.FORMAT_VERSION.
-FRAMES_DIGEST = "1594837d9bd9df3127c1aae6ed8ba776243d0862a082219b93c9d16365e0554b"
+FRAMES_DIGEST = "c0cabb1046c54cb0b0c465db81c708c2fe27cc068eada0fc9692b2e6fc3fad21"
 
 
 def test_frame_dataset_bytes_unchanged(dataset):

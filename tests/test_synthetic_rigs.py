@@ -169,6 +169,6 @@ def test_configs_select_the_multi_rig_dataset(monkeypatch, tmp_path):
     d = load_config(str(REPO / "configs" / "depth_default.py:multirig"))
     assert synthetic_dataset_dir(d.data) == synthetic_dataset_dir(c.data)
     default = load_config(str(REPO / "configs" / "detect3d_default.py"))
-    assert synthetic_dataset_dir(default.data).name == "synthetic_n1000_s0_375x1242_val0.3_v2"
+    assert synthetic_dataset_dir(default.data).name == "synthetic_n1000_s0_375x1242_val0.3_v3"
     with pytest.raises(ValueError, match="needs 'multirig'"):
         load_config(str(REPO / "configs" / "detect3d_default.py:kittirig"))

@@ -56,7 +56,7 @@ def test_default_tiny_run_generates_data_trains_and_evaluates(tmp_path, monkeypa
     apply_overrides(config, ["train.num_steps=3", "eval.score_threshold=0.0"])
     workdir = tmp_path / "run"
     out = detect3d.train_and_evaluate(config, workdir)
-    data_root = tmp_path / "cache" / "synthetic_n16_s0_188x621_val0.3_v2"
+    data_root = tmp_path / "cache" / "synthetic_n16_s0_188x621_val0.3_v3"
     assert (data_root / "synthetic.json").exists()
     num_val = len((data_root / "ImageSets" / "val.txt").read_text().split())
     assert set(out["metrics"]) == {"ap11", "ap40"}

@@ -43,7 +43,7 @@ from gac_jax.data.synthetic.scene import DEFAULT_COUNTS
 from gac_jax.data.synthetic.traffic import SCENARIOS
 from gac_jax.data.synthetic.writer import SceneArguments
 
-FORMAT_VERSION = 3  # bump whenever the generated content changes (it keys idempotence)
+FORMAT_VERSION = 4  # bump whenever the generated content changes (it keys idempotence)
 DONE = "clips.json"
 MARKER = ".clips_in_progress.json"
 PARTIAL = ".clips_partial"

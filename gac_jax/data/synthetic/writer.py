@@ -53,7 +53,7 @@ from gac_jax.data.synthetic.generated_dir import (
 from gac_jax.data.synthetic.scene import CLASS_SIZES, DEFAULT_COUNTS
 from gac_jax.progress import about
 
-FORMAT_VERSION = 2  # bump whenever the generated content changes (it keys idempotence)
+FORMAT_VERSION = 3  # bump whenever the generated content changes (it keys idempotence)
 MARKER = ".synthetic_in_progress.json"
 DONE = "synthetic.json"
 OWNED = ("training", "ImageSets", "depth")  # what a fresh start may delete (only in our own dirs)
