@@ -16,13 +16,18 @@ split it was trained beside, so that tuning to the 13 real frames shows:
   and false positives per frame and cars found at score thresholds 0.5 to 0.9;
 * a picture grid of the 13 frames (``OUT/real/pictures/grid.png``).
 
+``--steps S ...`` also scores those earlier checkpoints of the run on the real frames and
+prints each figure's mean and range over the checkpoints: 13 frames (32 cars) and one
+training run are noisy, and the spread between checkpoints a few hundred steps apart shows
+how much a single figure can be trusted.
+
 ``--depth-workdir D`` also scores a depth run on the real KITTI-depth frame (``depth/``,
 split ``train``) beside the ground-plane prior alone. ``--clip`` runs the detector with
 ``--track`` over the real raw drive of ``raw_clip/`` (KITTI raw layout, the day's
 calibration found in its date folder) and reports the tracks it made.
 
     python benchmarks/real_frames.py --workdir W [--depth-workdir D] [--out DIR] [--clip]
-        [--samples ../shared/data/kitti_samples] [--no-generated] [--json OUT]
+        [--samples ../shared/data/kitti_samples] [--no-generated] [--json OUT] [--steps S ...]
 """
 
 from __future__ import annotations
@@ -112,13 +117,13 @@ def loose_2d_ap40(gts: list, dts: list) -> list[float]:
     ]
 
 
-def score_real(workdir: Path, samples: Path, out: Path) -> dict:
+def score_real(workdir: Path, samples: Path, out: Path, step: int | None = None) -> dict:
     from gac_jax.cli.evaluate_detector import evaluate_detector_workdir
     from gac_jax.trained.run_config import load_run_config
 
     root = samples / "object"
     summary = evaluate_detector_workdir(
-        workdir, data_root=root, split="labeled", save_images=13, out_dir=out / "real"
+        workdir, data_root=root, split="labeled", step=step, save_images=13, out_dir=out / "real"
     )
     threshold = float(load_run_config(workdir, None, None, root).eval.score_threshold)
     ids = read_split(root / "ImageSets" / "labeled.txt")
@@ -223,6 +228,15 @@ def main() -> None:
     p.add_argument("--no-generated", action="store_true", help="skip the generated val split")
     p.add_argument("--clip", action="store_true", help="also run --track over the raw drive")
     p.add_argument("--json", type=Path, help="write the results as JSON")
+    p.add_argument(
+        "--steps",
+        type=int,
+        nargs="+",
+        metavar="STEP",
+        help="also score these earlier checkpoints on the real frames and print the spread "
+        "(13 frames and one training run are noisy: checkpoints a few hundred steps apart "
+        "show how much)",
+    )
     args = p.parse_args()
     if not (args.samples / "object" / "ImageSets" / "labeled.txt").is_file():
         sys.exit(f"error: {args.samples}: not the kitti_samples folder (object/ImageSets missing)")
@@ -273,8 +287,34 @@ def main() -> None:
             )
     if "clip" in result:
         print("raw clip with --track:", json.dumps(result["clip"]))
+    if args.steps:
+        result["real_by_step"] = by_step = {}
+        for step in args.steps:
+            by_step[step] = score_real(args.workdir, args.samples, out / f"step_{step}", step)
+        by_step[r["weights"]] = r
+        print_spread(by_step)
     if args.json:
         args.json.write_text(json.dumps(result, indent=2, default=float) + "\n")
+
+
+def print_spread(by_step: dict) -> None:
+    """Real-frame figures of several checkpoints of one run: each, then mean and range."""
+    rows = {
+        "2d@0.7": lambda r: r["ap40"]["2d@0.7"][1],
+        "2d@0.5": lambda r: r["ap40"]["2d@0.5"][1],
+        "3d@0.5": lambda r: r["ap40"]["3d@0.5"][1],
+        "false positives per frame": lambda r: r["false_positives_per_frame"],
+        "found@0.5": lambda r: r["found_iou50"],
+        "found@0.7": lambda r: r["found_iou70"],
+    }
+    print(f"\nreal frames over {len(by_step)} checkpoints (Car moderate):")
+    for name, get in rows.items():
+        values = np.array([get(r) for r in by_step.values()], np.float64)
+        each = ", ".join(f"{v:.2f}" for v in values)
+        print(
+            f"  {name}: mean {values.mean():.2f}, range {values.min():.2f}-{values.max():.2f} "
+            f"({each})"
+        )
 
 
 if __name__ == "__main__":
