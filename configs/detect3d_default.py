@@ -16,8 +16,9 @@ out into split ``val_heldout``, evaluate with ``evaluate.py --workdir W --split 
 ``kittirig`` (with ``multirig``): train on the KITTI-like rig's frames only (cross-rig).
 ``fixedplane``: ignore the frames' ``planes/`` files (GAC, the anchor filter and the export
 get the level plane 1.65 m below the camera, as without files). ``long``: 3,000 generated
-frames (2,700 train / 300 val) for the same 1,750 steps: the best transfer to real KITTI frames
-measured so far (docs/results.md "Real KITTI frames"), at about 11 more minutes of generation.
+frames (2,700 train / 300 val) for the same 1,750 steps, at about 11 more minutes of
+generation: generated val 2D AP about a point higher, but on the real KITTI frames no better
+than the default (docs/results.md "Real KITTI frames").
 """
 
 from __future__ import annotations
@@ -79,7 +80,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         c.data.train_split = "train_kitti_rig"
     if "fixedplane" in variants:
         c.data.use_planes = False
-    if "long" in variants:  # more frames, the same steps (the lever measured on real frames)
+    if "long" in variants:  # more frames, the same steps
         c.data.synthetic.num_frames = 3000
         c.data.synthetic.val_fraction = 0.1
         c.train.num_steps = 1750
