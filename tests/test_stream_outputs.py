@@ -121,11 +121,13 @@ def test_one_stream_per_output_folder(tiny_detect3d_workdir, half_frames, half_c
     or onto its ``--out-video`` from another folder, stops before JAX loads with one line
     naming the running stream's pid, exit 2; the running stream's files are untouched and it
     ends normally."""
-    video = write_avi(tmp_path / "long.avi", numbered(half_frames, 300))
+    # paced to the file's 5 frames/s (--realtime), so that it is still running after the three
+    # refused starts however loaded the machine (unpaced, a tiny model can finish first)
+    video = write_avi(tmp_path / "long.avi", numbered(half_frames, 300), fps=5.0)
     out, movie = tmp_path / "out", tmp_path / "movies" / "drive.mp4"
     base = ["--workdir", tiny_detect3d_workdir, "--video", video, "--calib", half_calib]
     first = predict_process(
-        [*base, "--out", out, "--out-video", movie, "--report-every", 0], text=True
+        [*base, "--out", out, "--out-video", movie, "--report-every", 0, "--realtime"], text=True
     )
     deadline = time.monotonic() + 300
     while first.poll() is None and time.monotonic() < deadline:
@@ -139,6 +141,7 @@ def test_one_stream_per_output_folder(tiny_detect3d_workdir, half_frames, half_c
         (["--out", out, "--overwrite"], out),
         (["--out", tmp_path / "other", "--out-video", movie], movie),
     ]:
+        assert first.poll() is None, first.communicate()  # still running: the case is valid
         written = len(list(out.glob("data/*.txt")))
         second = predict_process([*base, *argv], env=env, text=True)
         stdout, stderr = second.communicate(timeout=120)
