@@ -17,8 +17,8 @@ out into split ``val_heldout``, evaluate with ``evaluate.py --workdir W --split 
 ``fixedplane``: ignore the frames' ``planes/`` files (GAC, the anchor filter and the export
 get the level plane 1.65 m below the camera, as without files). ``long``: 3,000 generated
 frames (2,700 train / 300 val) for the same 1,750 steps, at about 11 more minutes of
-generation: generated val 2D AP about a point higher, but on the real KITTI frames no better
-than the default (docs/results.md "Real KITTI frames").
+generation; on generated val and on the real KITTI frames it is no better than the default
+(docs/results.md "Real KITTI frames").
 """
 
 from __future__ import annotations
