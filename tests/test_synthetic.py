@@ -18,7 +18,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import shapely
@@ -155,7 +154,7 @@ def test_depth_layout_and_raw_calibration(dataset, frames):
 
 def test_labels_match_object_masks(dataset, frames):
     # A labelled object's 2D box is the clipped projection of its 3D box (KITTI's own
-    # labels are: test_kitti_label_boxes_are_projected_3d_boxes), which holds its visible
+    # labels are: tests/test_kitti_label_boxes.py), which holds its visible
     # pixels; a DontCare box is the extent of the visible pixels.
     for i, frame in enumerate(frames):
         objects = _labels(dataset, i)
@@ -180,34 +179,6 @@ def test_labels_match_object_masks(dataset, frames):
             else:
                 np.testing.assert_allclose(objects.bbox[line], extent, atol=1.0)
                 assert height < 20 * SIZE[0] / 375 or obj.location[2] > 70
-
-
-def test_kitti_label_boxes_are_projected_3d_boxes(kitti_samples_full):
-    # What the generated labels copy: on KITTI's own labels, a Car's 2D box is the
-    # projection of its 3D box clipped to the image, whatever its occlusion; it is not the
-    # extent of its visible pixels (which would shrink with occlusion).
-    root = kitti_samples_full / "object" / "training"
-    names = kitti.read_split(kitti_samples_full / "object" / "ImageSets" / "labeled.txt")
-    ratios = {0: [], 1: [], 2: []}
-    for name in names:
-        labels = kitti.read_label(root / "label_2" / f"{name}.txt")
-        P2 = kitti.read_calib(root / "calib" / f"{name}.txt").P2
-        height, width = cv2.imread(str(root / "image_2" / f"{name}.png")).shape[:2]
-        for i in np.flatnonzero(labels.type == "Car"):
-            corners = box3d_corners(
-                labels.location[i][None], labels.dimensions[i][None], [labels.rotation_y[i]]
-            )
-            projected = box2d_from_corners(corners, P2, (height, width))[0]
-            box = labels.bbox[i]
-            if box[3] - box[1] < 25 or labels.truncated[i] > 0.1:
-                continue
-            size = np.array([box[2] - box[0], box[3] - box[1]])
-            ratios[int(labels.occluded[i])].append(size / (projected[2:] - projected[:2]))
-    for level, r in ratios.items():
-        r = np.array(r)
-        print(f"occlusion {level}: {len(r)} cars, median box / projection (w, h) {np.median(r, 0)}")
-        assert len(r) >= 5
-        np.testing.assert_allclose(np.median(r, axis=0), 1.0, atol=0.03)
 
 
 def test_dense_depth_on_labelled_boxes(dataset, frames):

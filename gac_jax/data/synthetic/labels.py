@@ -6,7 +6,7 @@ For each road user of the scene, from the left view (``P2``):
   ``[0, W-1] x [0, H-1]``), not shrunk by occlusion. That is how KITTI's own labels are:
   on the labelled real frames of ``kitti_samples``, a Car's 2D box and the clipped
   projection of its 3D box differ by about 1 % of its width and height, at every
-  occlusion level (``tests/test_kitti_real.py``), whereas the extent of its visible
+  occlusion level (``tests/test_kitti_label_boxes.py``), whereas the extent of its visible
   pixels is 5-30 % smaller.
 * truncation: fraction of its unoccluded silhouette that falls outside the image.
 * occlusion: from the visible fraction ``f`` of its unoccluded in-image
