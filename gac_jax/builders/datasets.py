@@ -23,14 +23,16 @@ def synthetic_config() -> ml_collections.ConfigDict:
     ``rigs``: ``'kitti'`` (KITTI's rigs) or ``'multi'`` (eight vehicles, ground planes,
     :mod:`gac_jax.data.synthetic.rigs`); ``randomize``: share of frames with a randomized
     background (:mod:`gac_jax.data.synthetic.domain_randomization`; 0: none, a cache folder of
-    its own otherwise); ``workers``: generator processes (0: one per
-    core; the content does not depend on them). Both configs share it, so the detector
-    and the depth network train on one generated dataset.
+    its own otherwise); ``photo``: share of frames with photo textures on foliage, rough
+    solids and verges (:mod:`gac_jax.data.synthetic.photo_textures`; the same);
+    ``workers``: generator processes (0: one per core; the content does not depend on them).
+    Both configs share it, so the detector and the depth network train on one generated
+    dataset.
     """
     return ml_collections.ConfigDict(
         dict(
             num_frames=1000, seed=0, height=375, width=1242, val_fraction=0.5, rigs="kitti",
-            randomize=0.0, workers=0,
+            randomize=0.0, photo=0.0, workers=0,
         )
     )  # fmt: skip
 
@@ -48,6 +50,8 @@ def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
     name += f"_v{FORMAT_VERSION}" if FORMAT_VERSION > 1 else ""
     randomize = float(s.get("randomize", 0.0))
     name += f"_dr{randomize:g}" if randomize > 0 else ""
+    photo = float(s.get("photo", 0.0))
+    name += f"_ph{photo:g}" if photo > 0 else ""
     rig_set = s.get("rigs", "kitti")
     return default_cache_dir() / (name if rig_set == "kitti" else f"{name}_{rig_set}rig")
 
@@ -87,6 +91,7 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
                 val_fraction=s.val_fraction,
                 rig_set=s.get("rigs", "kitti"),
                 randomize=float(s.get("randomize", 0.0)),
+                photo=float(s.get("photo", 0.0)),
                 workers=s.get("workers") or None,  # 0 / absent: one per core
                 progress=True,  # what, where and about how long; then a bar or a line per ~10 %
                 should_stop=stopping.stop_requested,  # a stop signal stops it at once

@@ -161,6 +161,14 @@ def build_parser() -> argparse.ArgumentParser:
         "(default 0)",
     )
     p.add_argument(
+        "--photo",
+        type=float,
+        default=None,
+        metavar="SHARE",
+        help="frames only: share of frames (0-1) whose foliage, fences, boxes and verges take "
+        "their detail from photographs of grass and gravel (default 0)",
+    )
+    p.add_argument(
         "--overwrite", action="store_true", help="replace a dataset made with other arguments"
     )
     p.add_argument(
@@ -205,6 +213,8 @@ def _check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
         parser.error("--val-fraction: clips have no splits")
     if args.randomize is not None:
         parser.error("--randomize: for frames only")
+    if args.photo is not None:
+        parser.error("--photo: for frames only")
 
 
 def _generate(args: argparse.Namespace, what: str, call):
@@ -280,6 +290,7 @@ def main(argv: list[str] | None = None) -> int:
             classes=classes,
             rig_set=args.rigs,
             randomize=args.randomize or 0.0,
+            photo=args.photo or 0.0,
             workers=args.workers,
             overwrite=args.overwrite,
             progress=not args.quiet,

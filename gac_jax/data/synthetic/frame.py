@@ -2,8 +2,9 @@
 
 Frame ``index`` of a dataset with ``seed`` draws all its randomness from
 ``numpy.random.SeedSequence([seed, index])``, so a frame does not depend on the
-number of frames, the split or the worker that renders it. Domain randomization draws from
-a stream of its own, so a frame it leaves alone is the same with or without it.
+number of frames, the split or the worker that renders it. Domain randomization and photo
+textures draw from streams of their own, so a frame they leave alone is the same with or
+without them.
 """
 
 from __future__ import annotations
@@ -13,7 +14,15 @@ import dataclasses
 import numpy as np
 
 from gac_jax.data.kitti import Calibration, KittiObjects
-from gac_jax.data.synthetic import calibration, domain_randomization, labels, lidar, render, rigs
+from gac_jax.data.synthetic import (
+    calibration,
+    domain_randomization,
+    labels,
+    lidar,
+    photo_textures,
+    render,
+    rigs,
+)
 from gac_jax.data.synthetic.scene import Scene, sample_scene
 
 
@@ -45,8 +54,8 @@ class Frame:
 
 
 def _streams(seed: int, index: int) -> list[np.random.Generator]:
-    # (children are keyed by their position: a fifth stream leaves the first four as they were)
-    children = np.random.SeedSequence([int(seed), int(index)]).spawn(5)
+    # (children are keyed by their position: a sixth stream leaves the first five as they were)
+    children = np.random.SeedSequence([int(seed), int(index)]).spawn(6)
     return [np.random.default_rng(c) for c in children]
 
 
@@ -64,6 +73,7 @@ def make_frame(
     camera_height: float | None = None,
     rig_set: str = "kitti",
     randomize: float = 0.0,
+    photo: float = 0.0,
 ) -> Frame:
     """Samples and renders frame ``index`` of the dataset ``seed``.
 
@@ -75,8 +85,10 @@ def make_frame(
       rig_set: ``"kitti"`` (the default dataset) or ``"multi"`` (:mod:`rigs`).
       randomize: share of frames whose background gets random colours and patterns
         (:mod:`domain_randomization`; 0 = none).
+      photo: share of frames whose foliage, rough solids and verges take their detail from
+        photographs (:mod:`photo_textures`; 0 = none).
     """
-    rig_rng, scene_rng, camera_rng, lidar_rng, random_rng = _streams(seed, index)
+    rig_rng, scene_rng, camera_rng, lidar_rng, random_rng, photo_rng = _streams(seed, index)
     rig_index = rigs.choose_rig(rig_set, rig_rng)
     rig = rigs.cameras(rig_set)[rig_index]
     pose = rigs.sample_pose(rig_set, rig_index, rig_rng)
@@ -89,6 +101,10 @@ def make_frame(
     if randomize > 0.0:
         scene.background = domain_randomization.randomize_background(
             scene.background, random_rng, randomize
+        )
+    if photo > 0.0:
+        scene.background, scene.road = photo_textures.photo_background(
+            scene.background, scene.road, photo_rng, photo
         )
     views = {
         2: render.render_view(scene, calib.P2, image_size, camera_rng),

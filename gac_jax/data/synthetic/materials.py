@@ -14,7 +14,7 @@ import functools
 
 import numpy as np
 
-from gac_jax.data.synthetic import shapes
+from gac_jax.data.synthetic import photo_textures, shapes
 
 TILE = 256  # noise tiles are TILE x TILE and wrap around
 
@@ -95,7 +95,15 @@ def road_surface(road, t, s, depth, px_lat, px_long) -> np.ndarray:
     fade = np.clip(6.0 / depth, 0.15, 1.0)
     grain = lookup("fine", s, t, 24.0) * fade
     patch = lookup("medium", s, t, 6.0)
-    shade = 1.0 + 0.07 * grain + 0.06 * patch + verge[idx] * (0.15 * patch + 0.12 * grain)
+    if road.verge_photo is None:
+        shade = 1.0 + 0.07 * grain + 0.06 * patch + verge[idx] * (0.15 * patch + 0.12 * grain)
+    else:  # grass from a photograph on the verges (photo_textures)
+        texture, metres, contrast, da, db = road.verge_photo[:5]
+        shade = 1.0 + 0.07 * grain + 0.06 * patch
+        sel = np.flatnonzero(verge[idx] > 0)
+        footprint = np.sqrt(px_lat[sel] * px_long[sel])
+        detail = photo_textures.sample(int(texture), t[sel] + da, s[sel] + db, metres, footprint)
+        shade[sel] = 1.0 + 0.15 * patch[sel] + np.float32(contrast) * detail
     color = base[idx] * shade[:, None]
 
     paint = np.zeros_like(t)
@@ -137,13 +145,16 @@ def paving_texture() -> np.ndarray:
     return (0.72 + 0.28 * np.minimum(line[:, None], line[None, :])).astype(np.float32)
 
 
-def textured_faces(solid: shapes.Solid, face: np.ndarray, local: np.ndarray, depth, base):
+def textured_faces(
+    solid: shapes.Solid, face: np.ndarray, local: np.ndarray, depth, base, focal: float = 721.5
+):
     """Applies ``solid``'s textures to some of its pixels.
 
     Args:
       face: (n,) face index of each pixel; local: (n, 3) the pixel's 3D point in
         the solid's texture frame; depth: (n,) camera depth; base: (n, 3) flat
-        shaded colours (modified and returned).
+        shaded colours (modified and returned); focal: the camera's focal length
+        (pixels), for the size of a pixel on a surface.
     """
     codes = set(solid.materials.tolist()) - {shapes.FLAT}
     mats = solid.materials[face] if len(codes) > 1 or shapes.FLAT in solid.materials else None
@@ -176,6 +187,9 @@ def textured_faces(solid: shapes.Solid, face: np.ndarray, local: np.ndarray, dep
             base[sel] = _glass(solid.params, x, y, z, base[sel])
         elif code == shapes.CARSIDE:
             base[sel] = _car_side(solid.params, x, y, base[sel])
+        elif code == shapes.PHOTO:
+            pixel_metres = depth[sel] * np.float32(1.0 / focal)
+            base[sel] = _photo(solid.params, x, y, z, pixel_metres, base[sel])
         elif code == shapes.RANDOM:
             albedo = solid.colors[face[sel]]
             base[sel] = _random_pattern(solid.params, x, y, z, albedo, base[sel])
@@ -226,6 +240,23 @@ def _facade(params, face, x, y, z, base, fade):
     tint = base[idx] / np.maximum(base[idx].max(axis=1, keepdims=True), 1e-3)
     out[idx] = glass * (0.5 + 0.5 * tint)
     return out
+
+
+def _photo(params, x, y, z, pixel_metres, base):
+    """Foliage or a rough surface with a photograph's detail (:mod:`photo_textures`).
+
+    Texture frame = road frame (x lateral, y down, z along the road). ``params``: texture,
+    metres per photograph, contrast, offsets, foliage flag. Foliage keeps the renderer's
+    clumps of leaves at the metre scale under the photograph's detail.
+    """
+    texture, metres, contrast, da, db, foliage = params[:6]
+    detail = photo_textures.sample(int(texture), x + z + da, y + db, metres, pixel_metres)
+    if foliage:
+        clumps = lookup("medium", x + z, y, 5.0)
+        gain = np.clip(0.8 + 0.25 * clumps + np.float32(1.6 * contrast) * detail, 0.15, 1.7)
+    else:
+        gain = np.clip(1.0 + np.float32(contrast) * detail, 0.3, 1.7)
+    return base * gain[:, None]
 
 
 def _random_pattern(params, x, y, z, albedo, base):

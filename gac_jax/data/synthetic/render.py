@@ -240,7 +240,9 @@ class _Canvas:
             local = np.stack(
                 [d[0] * frame[0, k] + d[1] * frame[1, k] + d[2] * frame[2, k] for k in range(3)], -1
             )
-            image[rr, cc] = materials.textured_faces(solid, f, local, 1.0 / r_win, image[rr, cc])
+            image[rr, cc] = materials.textured_faces(
+                solid, f, local, 1.0 / r_win, image[rr, cc], float(self.cam.P[0, 0])
+            )
         self.image, self.kind = image, kind
         self.shade_ground()
         self.shadows()

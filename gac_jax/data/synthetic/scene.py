@@ -65,6 +65,8 @@ class Road:
         dash length, phase.
       crosswalk: ``(s0, s1)`` extent of a zebra crossing, or None.
       cross: ``(s0, s1)`` extent of a cross street (asphalt to both sides), or None.
+      verge_photo: :func:`~gac_jax.data.synthetic.photo_textures.photo_params` of the
+        verges' grass, or None (procedural noise).
     """
 
     left: float
@@ -78,6 +80,7 @@ class Road:
     paint_color: np.ndarray
     paint_strength: float
     cross: tuple[float, float] | None = None
+    verge_photo: tuple | None = None  # grass from a photograph on the verges (photo_textures)
 
 
 @dataclasses.dataclass

@@ -19,6 +19,7 @@ import numpy as np
 
 # Face materials (how ``materials.py`` shades a face).
 FLAT, GLASS, FACADE, PAVING, FOLIAGE, HEADLIGHTS, TAILLIGHTS, ROUGH, CARSIDE, RANDOM = range(10)
+PHOTO = 10  # foliage and rough faces with a photograph's detail (photo_textures)
 
 # Face order of box-like hexahedra: vertices are indexed like the corners of
 # ``[x0, x1] x [y0, y1] x [z0, z1]`` with bit 0 = x, bit 1 = y, bit 2 = z.

@@ -101,6 +101,7 @@ class DatasetSpec(SceneArguments):
     classes: tuple[tuple[str, int, int], ...] = tuple((k, *v) for k, v in DEFAULT_COUNTS.items())
     rigs: str = "kitti"  # the camera rig set (gac_jax.data.synthetic.rigs)
     randomize: float = 0.0  # share of frames with a randomized background (domain_randomization)
+    photo: float = 0.0  # share of frames with photo textures (photo_textures)
 
     def validate(self) -> None:
         """Raises ValueError with a clear message for unusable arguments."""
@@ -115,6 +116,8 @@ class DatasetSpec(SceneArguments):
             raise ValueError(f"val fraction must be in [0, 1], got {self.val_fraction}")
         if not 0.0 <= self.randomize <= 1.0:
             raise ValueError(f"randomize must be a share in [0, 1], got {self.randomize}")
+        if not 0.0 <= self.photo <= 1.0:
+            raise ValueError(f"photo must be a share in [0, 1], got {self.photo}")
 
     def to_json(self) -> dict:
         return {
@@ -129,6 +132,7 @@ class DatasetSpec(SceneArguments):
             # (absent for KITTI's rigs: the default dataset's description is what it was)
             **({"rigs": self.rigs} if self.rigs != "kitti" else {}),
             **({"randomize": float(self.randomize)} if self.randomize > 0 else {}),
+            **({"photo": float(self.photo)} if self.photo > 0 else {}),
         }
 
     def splits(self) -> dict[str, list[int]]:
@@ -249,7 +253,13 @@ def _write_frame(job: _Job, index: int) -> float:
     start = time.perf_counter()
     spec = job.spec
     frame = make_frame(
-        spec.seed, index, spec.image_size, spec.counts, rig_set=spec.rigs, randomize=spec.randomize
+        spec.seed,
+        index,
+        spec.image_size,
+        spec.counts,
+        rig_set=spec.rigs,
+        randomize=spec.randomize,
+        photo=spec.photo,
     )
     paths = frame_paths(Path(job.root), index, frame.rig, job.split_of[index], spec.rigs)
     write_calib(paths["calib"], frame.calib)
@@ -301,6 +311,7 @@ def generate_dataset(
     classes: dict[str, tuple[int, int]] | None = None,
     rig_set: str = "kitti",
     randomize: float = 0.0,
+    photo: float = 0.0,
     workers: int | None = None,
     overwrite: bool = False,
     progress: bool = False,
@@ -328,6 +339,8 @@ def generate_dataset(
         :mod:`gac_jax.data.synthetic.rigs`).
       randomize: share of frames whose background gets random colours and patterns
         (:mod:`gac_jax.data.synthetic.domain_randomization`; 0 = none, the default).
+      photo: share of frames whose foliage, rough solids and verges take their detail from
+        photographs (:mod:`gac_jax.data.synthetic.photo_textures`; 0 = none, the default).
       workers: processes (default ``os.cpu_count()``; 1 = in this process).
       overwrite: replace a dataset made with other arguments instead of failing.
       progress: show a progress bar.
@@ -354,6 +367,7 @@ def generate_dataset(
         classes=tuple((str(k), int(lo), int(hi)) for k, (lo, hi) in counts.items()),
         rigs=rig_set,
         randomize=float(randomize),
+        photo=float(photo),
     )
     spec.validate()
     root = Path(out_dir)
