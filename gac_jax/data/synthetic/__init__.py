@@ -28,6 +28,8 @@ Modules:
 * ``shapes`` - convex solids; part models of cars, pedestrians, cyclists.
 * ``scene`` / ``roadside`` - sampling a scene (road, roadside, road users, light).
 * ``render`` - ray-casting z-buffer rasteriser; ``materials`` - surface appearance.
+* ``domain_randomization`` - random colours and patterns on the background (``--randomize``);
+  ``photo_textures`` - detail from photographs of grass and gravel (``--photo``).
 * ``labels`` - KITTI labels from a render; ``lidar`` - sparse depth sampling.
 * ``frame`` - one frame in memory; ``writer`` - the layout on disk, resumable.
 * ``traffic`` - road users that move through a clip; ``drive`` - a clip's world, ego motion
