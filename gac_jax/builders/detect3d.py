@@ -66,7 +66,8 @@ def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
         transforms.CropOrPadWidth(d.width),
     ]
     if d.get("camera_effects", False):  # absent in older run folders
-        ops.append(CameraEffects())
+        detail = 0.8 if d.get("sharpen_contrast", False) else 0.0  # (absent: off)
+        ops.append(CameraEffects(p_contrast=detail, p_sharpen=detail))
     if d.photometric:
         ops.append(transforms.PhotometricDistort())
     if d.flip_prob > 0:
