@@ -53,9 +53,12 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.val_cameras = (2,)  # left views: half the evaluation time
     # other cameras' tone curves, white balance, blur, noise and JPEG (data/camera_effects.py)
     c.data.camera_effects = True
-    # with it, contrast and sharpening (each on 80 % of the images): the generated world is
+    # with it, contrast and sharpening (each on a share of the images): the generated world is
     # softer than a real camera's (data/camera_effects.py)
     c.data.sharpen_contrast = False
+    c.data.sharpen_contrast_share = 0.8  # of the images, each
+    c.data.contrast_range = (1.0, 1.8)  # gain on the difference from the image mean
+    c.data.sharpen_range = (0.5, 2.0)  # unsharp mask amount
     c.train.num_epochs = 5
     c.train.learning_rate = 4e-4
     c.train.final_learning_rate = 4e-5

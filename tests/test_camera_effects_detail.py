@@ -63,3 +63,27 @@ def test_off_by_default_and_the_other_effects_draw_as_before():
     on = CameraEffects(p_contrast=1.0, p_sharpen=1.0)({**sample, "rng": np.random.default_rng(7)})
     assert on["P2"] is sample["P2"]  # pixels only
     assert CameraEffects().p_contrast == 0.0 and CameraEffects().p_sharpen == 0.0
+
+
+def test_from_config_with_and_without_the_keys():
+    import ml_collections
+
+    from gac_jax.data.camera_effects import from_config
+
+    old = from_config(ml_collections.ConfigDict({"camera_effects": True}))  # an older run folder
+    assert old.p_contrast == 0.0 and old.p_sharpen == 0.0
+    on = from_config(ml_collections.ConfigDict({"sharpen_contrast": True}))
+    assert on.p_contrast == on.p_sharpen == 0.8
+    assert on.contrast == (1.0, 1.8) and on.sharpen == (0.5, 2.0)
+    tuned = from_config(
+        ml_collections.ConfigDict(
+            {
+                "sharpen_contrast": True,
+                "sharpen_contrast_share": 1.0,
+                "contrast_range": (1.2, 2.2),
+                "sharpen_range": (1.0, 3.0),
+            }
+        )
+    )
+    assert tuned.p_contrast == tuned.p_sharpen == 1.0
+    assert tuned.contrast == (1.2, 2.2) and tuned.sharpen == (1.0, 3.0)

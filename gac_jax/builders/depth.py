@@ -12,8 +12,7 @@ import jax.numpy as jnp
 import ml_collections
 
 from gac_jax.builders.datasets import plane_ops, prepare_dataset
-from gac_jax.data import transforms
-from gac_jax.data.camera_effects import CameraEffects
+from gac_jax.data import camera_effects, transforms
 from gac_jax.data.kitti_depth import list_selection
 from gac_jax.data.sources import KittiDepthSelectionSource, open_depth_source
 from gac_jax.evaluation.depth_evaluator import DepthEvaluator
@@ -40,8 +39,7 @@ def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
     d = config.data
     ops = _view_ops(d) + [transforms.RandomCropWidth(d.width)]
     if d.get("camera_effects", False):  # absent in older run folders
-        detail = 0.8 if d.get("sharpen_contrast", False) else 0.0  # (absent: off)
-        ops.append(CameraEffects(p_contrast=detail, p_sharpen=detail))
+        ops.append(camera_effects.from_config(d))
     if d.photometric:
         ops.append(transforms.PhotometricDistort())
     if d.flip_prob > 0:

@@ -14,8 +14,7 @@ import ml_collections
 import numpy as np
 
 from gac_jax.builders.datasets import plane_ops
-from gac_jax.data import transforms
-from gac_jax.data.camera_effects import CameraEffects
+from gac_jax.data import camera_effects, transforms
 from gac_jax.data.loader import Loader
 from gac_jax.data.sources import open_object_source
 from gac_jax.detection.anchor_priors import load_or_compute_priors, prior_frame_from_objects
@@ -66,8 +65,7 @@ def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
         transforms.CropOrPadWidth(d.width),
     ]
     if d.get("camera_effects", False):  # absent in older run folders
-        detail = 0.8 if d.get("sharpen_contrast", False) else 0.0  # (absent: off)
-        ops.append(CameraEffects(p_contrast=detail, p_sharpen=detail))
+        ops.append(camera_effects.from_config(d))
     if d.photometric:
         ops.append(transforms.PhotometricDistort())
     if d.flip_prob > 0:

@@ -101,3 +101,22 @@ class CameraEffects:
             if ok:  # (RGB order is kept: the codec treats the channels alike but for chroma)
                 img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED).astype(np.float32)
         return {**sample, "image": img.astype(np.float32)}
+
+
+def from_config(data) -> CameraEffects:
+    """The training images' camera effects of a config's ``data`` block.
+
+    ``sharpen_contrast`` (bool) turns on contrast and sharpening, each on a
+    ``sharpen_contrast_share`` of the images (default 0.8), with the ranges
+    ``contrast_range`` and ``sharpen_range`` (defaults as :class:`CameraEffects`). Keys absent
+    from older run folders take these defaults.
+    """
+    if not data.get("sharpen_contrast", False):
+        return CameraEffects()
+    share = float(data.get("sharpen_contrast_share", 0.8))
+    return CameraEffects(
+        p_contrast=share,
+        p_sharpen=share,
+        contrast=tuple(data.get("contrast_range", CameraEffects.contrast)),
+        sharpen=tuple(data.get("sharpen_range", CameraEffects.sharpen)),
+    )
