@@ -25,6 +25,8 @@ def synthetic_config() -> ml_collections.ConfigDict:
     background (:mod:`gac_jax.data.synthetic.domain_randomization`; 0: none, a cache folder of
     its own otherwise); ``photo``: share of frames with photo textures on foliage, rough
     solids and verges (:mod:`gac_jax.data.synthetic.photo_textures`; the same);
+    ``randomize_cars``: share of frames whose cars get random paint, glass and tyres
+    (:func:`gac_jax.data.synthetic.domain_randomization.randomize_cars`; the same);
     ``workers``: generator processes (0: one per core; the content does not depend on them).
     Both configs share it, so the detector and the depth network train on one generated
     dataset.
@@ -32,7 +34,7 @@ def synthetic_config() -> ml_collections.ConfigDict:
     return ml_collections.ConfigDict(
         dict(
             num_frames=1000, seed=0, height=375, width=1242, val_fraction=0.5, rigs="kitti",
-            randomize=0.0, photo=0.0, workers=0,
+            randomize=0.0, photo=0.0, randomize_cars=0.0, workers=0,
         )
     )  # fmt: skip
 
@@ -52,6 +54,8 @@ def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
     name += f"_dr{randomize:g}" if randomize > 0 else ""
     photo = float(s.get("photo", 0.0))
     name += f"_ph{photo:g}" if photo > 0 else ""
+    cars = float(s.get("randomize_cars", 0.0))
+    name += f"_dc{cars:g}" if cars > 0 else ""
     rig_set = s.get("rigs", "kitti")
     return default_cache_dir() / (name if rig_set == "kitti" else f"{name}_{rig_set}rig")
 
@@ -92,6 +96,7 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
                 rig_set=s.get("rigs", "kitti"),
                 randomize=float(s.get("randomize", 0.0)),
                 photo=float(s.get("photo", 0.0)),
+                randomize_cars=float(s.get("randomize_cars", 0.0)),
                 workers=s.get("workers") or None,  # 0 / absent: one per core
                 progress=True,  # what, where and about how long; then a bar or a line per ~10 %
                 should_stop=stopping.stop_requested,  # a stop signal stops it at once

@@ -169,6 +169,14 @@ def build_parser() -> argparse.ArgumentParser:
         "their detail from photographs of grass and gravel (default 0)",
     )
     p.add_argument(
+        "--randomize-cars",
+        type=float,
+        default=None,
+        metavar="SHARE",
+        help="frames only: share of frames (0-1) in which most cars get a random paint and "
+        "pattern, window tint and tyre shade (domain randomization of the cars; default 0)",
+    )
+    p.add_argument(
         "--overwrite", action="store_true", help="replace a dataset made with other arguments"
     )
     p.add_argument(
@@ -215,6 +223,8 @@ def _check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
         parser.error("--randomize: for frames only")
     if args.photo is not None:
         parser.error("--photo: for frames only")
+    if args.randomize_cars is not None:
+        parser.error("--randomize-cars: for frames only")
 
 
 def _generate(args: argparse.Namespace, what: str, call):
@@ -291,6 +301,7 @@ def main(argv: list[str] | None = None) -> int:
             rig_set=args.rigs,
             randomize=args.randomize or 0.0,
             photo=args.photo or 0.0,
+            randomize_cars=args.randomize_cars or 0.0,
             workers=args.workers,
             overwrite=args.overwrite,
             progress=not args.quiet,

@@ -2,9 +2,9 @@
 
 Frame ``index`` of a dataset with ``seed`` draws all its randomness from
 ``numpy.random.SeedSequence([seed, index])``, so a frame does not depend on the
-number of frames, the split or the worker that renders it. Domain randomization and photo
-textures draw from streams of their own, so a frame they leave alone is the same with or
-without them.
+number of frames, the split or the worker that renders it. Domain randomization (of the
+background and of the cars) and photo textures draw from streams of their own, so a frame
+they leave alone is the same with or without them.
 """
 
 from __future__ import annotations
@@ -54,8 +54,8 @@ class Frame:
 
 
 def _streams(seed: int, index: int) -> list[np.random.Generator]:
-    # (children are keyed by their position: a sixth stream leaves the first five as they were)
-    children = np.random.SeedSequence([int(seed), int(index)]).spawn(6)
+    # (children are keyed by their position: a new stream leaves the earlier ones as they were)
+    children = np.random.SeedSequence([int(seed), int(index)]).spawn(7)
     return [np.random.default_rng(c) for c in children]
 
 
@@ -74,6 +74,7 @@ def make_frame(
     rig_set: str = "kitti",
     randomize: float = 0.0,
     photo: float = 0.0,
+    randomize_cars: float = 0.0,
 ) -> Frame:
     """Samples and renders frame ``index`` of the dataset ``seed``.
 
@@ -87,8 +88,11 @@ def make_frame(
         (:mod:`domain_randomization`; 0 = none).
       photo: share of frames whose foliage, rough solids and verges take their detail from
         photographs (:mod:`photo_textures`; 0 = none).
+      randomize_cars: share of frames whose cars get random paint, glass and tyres
+        (:func:`domain_randomization.randomize_cars`; 0 = none).
     """
-    rig_rng, scene_rng, camera_rng, lidar_rng, random_rng, photo_rng = _streams(seed, index)
+    streams = _streams(seed, index)
+    rig_rng, scene_rng, camera_rng, lidar_rng, random_rng, photo_rng, car_rng = streams
     rig_index = rigs.choose_rig(rig_set, rig_rng)
     rig = rigs.cameras(rig_set)[rig_index]
     pose = rigs.sample_pose(rig_set, rig_index, rig_rng)
@@ -106,6 +110,8 @@ def make_frame(
         scene.background, scene.road = photo_textures.photo_background(
             scene.background, scene.road, photo_rng, photo
         )
+    if randomize_cars > 0.0:
+        scene.objects = domain_randomization.randomize_cars(scene.objects, car_rng, randomize_cars)
     views = {
         2: render.render_view(scene, calib.P2, image_size, camera_rng),
         3: render.render_view(scene, calib.P3, image_size, camera_rng),

@@ -102,6 +102,7 @@ class DatasetSpec(SceneArguments):
     rigs: str = "kitti"  # the camera rig set (gac_jax.data.synthetic.rigs)
     randomize: float = 0.0  # share of frames with a randomized background (domain_randomization)
     photo: float = 0.0  # share of frames with photo textures (photo_textures)
+    randomize_cars: float = 0.0  # share of frames with randomized cars (domain_randomization)
 
     def validate(self) -> None:
         """Raises ValueError with a clear message for unusable arguments."""
@@ -118,6 +119,8 @@ class DatasetSpec(SceneArguments):
             raise ValueError(f"randomize must be a share in [0, 1], got {self.randomize}")
         if not 0.0 <= self.photo <= 1.0:
             raise ValueError(f"photo must be a share in [0, 1], got {self.photo}")
+        if not 0.0 <= self.randomize_cars <= 1.0:
+            raise ValueError(f"randomize_cars must be a share in [0, 1], got {self.randomize_cars}")
 
     def to_json(self) -> dict:
         return {
@@ -133,6 +136,7 @@ class DatasetSpec(SceneArguments):
             **({"rigs": self.rigs} if self.rigs != "kitti" else {}),
             **({"randomize": float(self.randomize)} if self.randomize > 0 else {}),
             **({"photo": float(self.photo)} if self.photo > 0 else {}),
+            **({"randomize_cars": float(self.randomize_cars)} if self.randomize_cars > 0 else {}),
         }
 
     def splits(self) -> dict[str, list[int]]:
@@ -260,6 +264,7 @@ def _write_frame(job: _Job, index: int) -> float:
         rig_set=spec.rigs,
         randomize=spec.randomize,
         photo=spec.photo,
+        randomize_cars=spec.randomize_cars,
     )
     paths = frame_paths(Path(job.root), index, frame.rig, job.split_of[index], spec.rigs)
     write_calib(paths["calib"], frame.calib)
@@ -312,6 +317,7 @@ def generate_dataset(
     rig_set: str = "kitti",
     randomize: float = 0.0,
     photo: float = 0.0,
+    randomize_cars: float = 0.0,
     workers: int | None = None,
     overwrite: bool = False,
     progress: bool = False,
@@ -341,6 +347,8 @@ def generate_dataset(
         (:mod:`gac_jax.data.synthetic.domain_randomization`; 0 = none, the default).
       photo: share of frames whose foliage, rough solids and verges take their detail from
         photographs (:mod:`gac_jax.data.synthetic.photo_textures`; 0 = none, the default).
+      randomize_cars: share of frames whose cars get random paint, glass and tyres
+        (:func:`gac_jax.data.synthetic.domain_randomization.randomize_cars`; 0 = none).
       workers: processes (default ``os.cpu_count()``; 1 = in this process).
       overwrite: replace a dataset made with other arguments instead of failing.
       progress: show a progress bar.
@@ -368,6 +376,7 @@ def generate_dataset(
         rigs=rig_set,
         randomize=float(randomize),
         photo=float(photo),
+        randomize_cars=float(randomize_cars),
     )
     spec.validate()
     root = Path(out_dir)
