@@ -28,7 +28,8 @@ Modules:
 * ``shapes`` - convex solids; part models of cars, pedestrians, cyclists.
 * ``scene`` / ``roadside`` - sampling a scene (road, roadside, road users, light).
 * ``render`` - ray-casting z-buffer rasteriser; ``materials`` - surface appearance.
-* ``domain_randomization`` - random colours and patterns on the background (``--randomize``);
+* ``domain_randomization`` - random colours and patterns on the background (``--randomize``)
+  and on the cars (``--randomize-cars``);
   ``photo_textures`` - detail from photographs of grass and gravel (``--photo``).
 * ``labels`` - KITTI labels from a render; ``lidar`` - sparse depth sampling.
 * ``frame`` - one frame in memory; ``writer`` - the layout on disk, resumable.
