@@ -45,6 +45,12 @@ def random_colour(rng: np.random.Generator) -> np.ndarray:
     return rgb.astype(np.float32)
 
 
+def _face_colours(base: np.ndarray, k: int, rng: np.random.Generator, gains: tuple):
+    """(k, 3) float32: ``base`` times a gain drawn per face from ``gains``, clipped to [0, 1]."""
+    gain = rng.uniform(gains[0], gains[1], (k, 1))
+    return np.clip(base * gain, 0.0, 1.0).astype(np.float32)
+
+
 def _pattern_params(rng: np.random.Generator, scale_range) -> tuple:
     """Parameters of ``materials._random_pattern``: pattern, period, contrast, second colour,
     direction, salt."""
@@ -82,7 +88,7 @@ def randomize_background(
             continue
         k = len(solid.offsets)
         base = random_colour(rng)
-        colors = np.clip(base * rng.uniform(0.85, 1.15, (k, 1)), 0.0, 1.0).astype(np.float32)
+        colors = _face_colours(base, k, rng, (0.85, 1.15))
         params = _pattern_params(rng, SCALE_RANGE)
         out.append(
             dataclasses.replace(
@@ -128,7 +134,7 @@ def randomize_cars(objects: list, rng: np.random.Generator, share: float) -> lis
         gloss = float(rng.uniform(0.0, 0.35))
         body = dataclasses.replace(
             body,
-            colors=np.clip(base * rng.uniform(0.9, 1.1, (k, 1)), 0.0, 1.0).astype(np.float32),
+            colors=_face_colours(base, k, rng, (0.9, 1.1)),
             materials=np.full(k, shapes.RANDOM, np.int64),
             params=_pattern_params(rng, CAR_SCALE_RANGE),
             gloss=gloss,
