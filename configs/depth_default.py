@@ -5,7 +5,8 @@
 Trains a small ground-aware depth U-Net (ResNet-34 encoder of base width 32, 96x320 input:
 the bottom 352 rows resized to 96, a random 320-column crop; both views of every training
 frame, photometric distortion, mirroring) for 5 epochs on the ``depth/`` folders of the
-embedded KITTI-format scenes (the detector's cache: ``data.source='synthetic'``), then
+embedded KITTI-format scenes (``data.source='synthetic'``: the detector's default frames
+without its randomized car paint, a cache folder of their own generated on first use), then
 evaluates itself on the left views of the generated val split: KITTI depth metrics, 16-bit
 PNGs and pictures under ``WORKDIR/results/step_N``. Evaluation sees the whole width
 (``eval_width`` 352 covers the 339 resized columns). Compare with the ground-plane and
@@ -37,7 +38,7 @@ from gac_jax.config import REPO_CONFIGS, load_config
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c = load_config(str(REPO_CONFIGS / "depth_kitti.py"))
     c.data.source = "synthetic"
-    c.data.synthetic.num_frames = 1000  # same cache as configs/detect3d_default.py
+    c.data.synthetic.num_frames = 1000  # the detector's frames, no randomized car paint
     c.data.synthetic.seed = 0
     c.data.synthetic.val_fraction = 0.3
     c.data.train_views = "both"

@@ -169,6 +169,14 @@ def test_configs_select_the_multi_rig_dataset(monkeypatch, tmp_path):
     d = load_config(str(REPO / "configs" / "depth_default.py:multirig"))
     assert synthetic_dataset_dir(d.data) == synthetic_dataset_dir(c.data)
     default = load_config(str(REPO / "configs" / "detect3d_default.py"))
-    assert synthetic_dataset_dir(default.data).name == "synthetic_n1000_s0_375x1242_val0.3_v3"
+    assert synthetic_dataset_dir(default.data).name == "synthetic_n1000_s0_375x1242_val0.3_v3_dc0.5"
+    # the depth default: the same frames without the randomized car paint; the tiny configs
+    # (the tests') share one cache
+    depth = load_config(str(REPO / "configs" / "depth_default.py"))
+    assert synthetic_dataset_dir(depth.data).name == "synthetic_n1000_s0_375x1242_val0.3_v3"
+    tiny = [
+        load_config(str(REPO / "configs" / f"{t}_default.py:tiny")) for t in ("detect3d", "depth")
+    ]
+    assert synthetic_dataset_dir(tiny[0].data) == synthetic_dataset_dir(tiny[1].data)
     with pytest.raises(ValueError, match="needs 'multirig'"):
         load_config(str(REPO / "configs" / "detect3d_default.py:kittirig"))
