@@ -19,7 +19,11 @@ split it was trained beside, so that tuning to the 13 real frames shows:
   detected / labelled 2D box width and height and of detected / labelled depth ``z`` (a
   detector that sees real cars as smaller or farther than its generated ones shows it here,
   and such a scale bias alone keeps boxes under KITTI's IoU 0.7);
-* a picture grid of the 13 frames (``OUT/real/pictures/grid.png``).
+* a picture grid of the 13 frames (``OUT/real/pictures/grid.png``);
+* with the generated val split scored: the run's operating point chosen there, the score
+  threshold of best F1 (precision of the Car detections, recall of the labelled cars at least
+  25 px tall, both at IoU 0.5) on a grid of 0.5 to 0.95, and the real frames' false positives
+  and cars found at that threshold. Nothing real chooses it.
 
 ``--steps S ...`` also scores those earlier checkpoints of the run on the real frames and
 prints each figure's mean and range over the checkpoints: 13 frames (32 cars) and one
@@ -56,6 +60,7 @@ from gac_jax.detection.nms import box_iou_matrix  # noqa: E402
 
 MIN_HEIGHT_PX = 25.0  # KITTI's moderate height limit
 SWEEP = (0.5, 0.6, 0.7, 0.8, 0.9)  # score thresholds of the false-positive sweep
+OPERATING_GRID = tuple(round(0.5 + 0.05 * i, 2) for i in range(10))  # 0.5 ... 0.95
 
 
 def false_positives(gt, dt, threshold: float) -> tuple[int, int, int, int]:
@@ -139,6 +144,51 @@ def car_row(metrics: dict) -> dict:
     }
 
 
+def threshold_sweep(gts: list, dts: list, thresholds) -> dict:
+    """Detections, false positives, precision, recall and F1 per score threshold.
+
+    Args:
+      gts, dts: labels and Car detections (KittiObjects with scores) per frame, same order.
+      thresholds: score thresholds.
+
+    Returns:
+      ``{threshold: {...}}``: per frame ``detections`` and ``false_positives``
+      (:func:`false_positives`), ``found`` (labelled cars at least 25 px tall found at IoU 0.5),
+      ``precision`` (share of the detections that are not false), ``recall`` (``found`` over
+      the labelled cars at least 25 px tall) and their harmonic mean ``f1``.
+    """
+    n = max(len(gts), 1)
+    tall = sum(
+        int(
+            np.sum((g.bbox[g.type == "Car"][:, 3] - g.bbox[g.type == "Car"][:, 1]) >= MIN_HEIGHT_PX)
+        )
+        for g in gts
+    )
+    out = {}
+    for t in thresholds:
+        tot = np.zeros(4, np.int64)
+        for gt, dt in zip(gts, dts, strict=True):
+            if len(dt):
+                tot += false_positives(gt, dt, t)
+        precision = (tot[0] - tot[1]) / tot[0] if tot[0] else 0.0
+        recall = tot[2] / tall if tall else 0.0
+        f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+        out[float(t)] = {
+            "detections": tot[0] / n,
+            "false_positives": tot[1] / n,
+            "found": int(tot[2]),
+            "precision": float(precision),
+            "recall": float(recall),
+            "f1": float(f1),
+        }
+    return out
+
+
+def operating_point(sweep: dict) -> float:
+    """The threshold of best F1 in :func:`threshold_sweep`'s output (the lowest on a tie)."""
+    return max(sorted(sweep), key=lambda t: (sweep[t]["f1"], -t))
+
+
 def loose_2d_ap40(gts: list, dts: list) -> list[float]:
     """Car 2D AP|R40 (easy, moderate, hard) at IoU 0.5, the devkit's rules otherwise.
 
@@ -197,14 +247,33 @@ def score_real(workdir: Path, samples: Path, out: Path, step: int | None = None)
         },
         "weights": summary["weights"],
         "pictures": str(out / "real" / "pictures" / "grid.png"),
+        "_frames": (gts, dts),  # for the operating point; not written to JSON
     }
 
 
 def score_generated(workdir: Path, out: Path) -> dict:
+    from gac_jax.builders.datasets import prepare_dataset
     from gac_jax.cli.evaluate_detector import evaluate_detector_workdir
+    from gac_jax.data.sources import open_object_source
+    from gac_jax.evaluation.detector_evaluator import ground_truth
+    from gac_jax.trained.run_config import load_run_config
 
     summary = evaluate_detector_workdir(workdir, out_dir=out / "generated_val")
-    return {"ap40": car_row(summary["metrics"]), "frames": summary["num_frames"]}
+    data = load_run_config(workdir, None, None).data
+    source = open_object_source(prepare_dataset(data), data.val_split, use_right_image=False)
+    result_dir = Path(summary["result_dir"])
+    gts, dts = [], []
+    for i, fid in enumerate(source.frame_ids):
+        path = result_dir / f"{fid}.txt"
+        gts.append(ground_truth(source, i))
+        dts.append(read_label(path, with_score=True) if path.exists() else parse_label("", True))
+    sweep = threshold_sweep(gts, dts, OPERATING_GRID)
+    return {
+        "ap40": car_row(summary["metrics"]),
+        "frames": summary["num_frames"],
+        "sweep": {f"{t:g}": v for t, v in sweep.items()},
+        "operating_point": operating_point(sweep),
+    }
 
 
 def score_depth(depth_workdir: Path, samples: Path, out: Path) -> dict:
@@ -288,6 +357,10 @@ def main() -> None:
         result["depth"] = score_depth(args.depth_workdir, args.samples, out)
     if args.clip:
         result["clip"] = run_clip(args.workdir, args.samples, out)
+    gts, dts = result["real"].pop("_frames")
+    if "generated_val" in result:
+        t = result["generated_val"]["operating_point"]
+        result["real"]["at_operating_point"] = {"threshold": t, **threshold_sweep(gts, dts, [t])[t]}
 
     r = result["real"]
     print(f"\nmachine: {one_line(describe_machine())}")
@@ -317,6 +390,16 @@ def main() -> None:
             for t, v in r["sweep"].items()
         )
     )
+    if "at_operating_point" in r:
+        o = r["at_operating_point"]
+        g = result["generated_val"]["sweep"][f"{o['threshold']:g}"]
+        print(
+            f"  at the operating point chosen on generated val (score {o['threshold']:g}, best F1 "
+            f"there: precision {g['precision']:.2f}, recall {g['recall']:.2f}, "
+            f"{g['false_positives']:.2f} false positives per frame): real frames "
+            f"{o['false_positives']:.2f} false positives per frame, {o['found']} cars found at "
+            f"IoU 0.5, precision {o['precision']:.2f}, recall {o['recall']:.2f}"
+        )
     if "depth" in result:
         d = result["depth"]
         for name in ("network", "ground_plane_prior"):
@@ -333,6 +416,7 @@ def main() -> None:
         result["real_by_step"] = by_step = {}
         for step in args.steps:
             by_step[step] = score_real(args.workdir, args.samples, out / f"step_{step}", step)
+            by_step[step].pop("_frames")
         by_step[r["weights"]] = r
         print_spread(by_step)
     if args.json:

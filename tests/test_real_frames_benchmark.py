@@ -65,3 +65,34 @@ def test_box_scale_medians_of_the_cars_found():
     far = _objects([_line("Car", (150, 100, 250, 160), score=0.9)], True)  # IoU 1/3
     assert real_frames.box_scale([GT], [far], 0.5)["cars"] == 0
     assert np.isnan(real_frames.box_scale([GT], [far], 0.5)["width"])
+
+
+def test_threshold_sweep_and_operating_point_by_hand():
+    dt = _objects(
+        [
+            _line("Car", (100, 100, 200, 160), score=0.9),  # the car (the one >= 25 px tall)
+            _line("Car", (1000, 100, 1050, 140), score=0.7),  # nothing there: false
+            _line("Car", (1100, 100, 1150, 140), score=0.55),  # nothing there: false
+        ],
+        True,
+    )
+    empty = _objects([], True)
+    sweep = real_frames.threshold_sweep([GT, GT], [dt, empty], (0.5, 0.6, 0.8, 0.95))
+    # two frames: 3 detections of which 2 false at 0.5; one of the two tall cars found
+    assert sweep[0.5]["detections"] == 1.5 and sweep[0.5]["false_positives"] == 1.0
+    assert sweep[0.5]["precision"] == pytest.approx(1 / 3)
+    assert sweep[0.5]["recall"] == pytest.approx(0.5)
+    assert sweep[0.5]["f1"] == pytest.approx(2 * (1 / 3) * 0.5 / (1 / 3 + 0.5))
+    assert sweep[0.6]["precision"] == pytest.approx(0.5) and sweep[0.6]["found"] == 1
+    assert sweep[0.8] == {
+        "detections": 0.5,
+        "false_positives": 0.0,
+        "found": 1,
+        "precision": 1.0,
+        "recall": 0.5,
+        "f1": pytest.approx(2 / 3),
+    }
+    assert sweep[0.95]["f1"] == 0.0 and sweep[0.95]["found"] == 0
+    assert real_frames.operating_point(sweep) == 0.8
+    # a tie goes to the lowest threshold
+    assert real_frames.operating_point({0.7: {"f1": 0.5}, 0.6: {"f1": 0.5}}) == 0.6
