@@ -144,6 +144,12 @@ def car_row(metrics: dict) -> dict:
     }
 
 
+def tall_cars(gt) -> int:
+    """Labelled cars of one frame at least ``MIN_HEIGHT_PX`` tall (those a detector should find)."""
+    cars = gt.bbox[gt.type == "Car"]
+    return int(np.sum((cars[:, 3] - cars[:, 1]) >= MIN_HEIGHT_PX))
+
+
 def threshold_sweep(gts: list, dts: list, thresholds) -> dict:
     """Detections, false positives, precision, recall and F1 per score threshold.
 
@@ -158,12 +164,7 @@ def threshold_sweep(gts: list, dts: list, thresholds) -> dict:
       the labelled cars at least 25 px tall) and their harmonic mean ``f1``.
     """
     n = max(len(gts), 1)
-    tall = sum(
-        int(
-            np.sum((g.bbox[g.type == "Car"][:, 3] - g.bbox[g.type == "Car"][:, 1]) >= MIN_HEIGHT_PX)
-        )
-        for g in gts
-    )
+    tall = sum(tall_cars(g) for g in gts)
     out = {}
     for t in thresholds:
         tot = np.zeros(4, np.int64)
@@ -215,8 +216,6 @@ def score_real(workdir: Path, samples: Path, out: Path, step: int | None = None)
     ids = read_split(root / "ImageSets" / "labeled.txt")
     result_dir = Path(summary["result_dir"])
     totals = np.zeros(4, np.int64)
-    by_threshold = {t: np.zeros(4, np.int64) for t in SWEEP}
-    tall = 0
     gts, dts = [], []
     for fid in ids:
         gt = read_label(root / "training" / "label_2" / f"{fid}.txt")
@@ -224,26 +223,23 @@ def score_real(workdir: Path, samples: Path, out: Path, step: int | None = None)
         dt = read_label(path, with_score=True) if path.exists() else None
         gts.append(gt)
         dts.append(dt if dt is not None else parse_label("", with_score=True))
-        cars = gt.bbox[gt.type == "Car"]
-        tall += int(np.sum((cars[:, 3] - cars[:, 1]) >= MIN_HEIGHT_PX))
         if dt is not None and len(dt):
             totals += false_positives(gt, dt, threshold)
-            for t in SWEEP:
-                by_threshold[t] += false_positives(gt, dt, t)
     n = len(ids)
+    sweep = threshold_sweep(gts, dts, SWEEP)
     return {
         "frames": n,
         "score_threshold": threshold,
         "ap40": {**car_row(summary["metrics"]), "2d@0.5": loose_2d_ap40(gts, dts)},
         "detections_per_frame": totals[0] / n,
         "false_positives_per_frame": totals[1] / n,
-        "cars_25px": tall,
+        "cars_25px": sum(tall_cars(g) for g in gts),
         "box_scale": box_scale(gts, dts, threshold),
         "found_iou50": int(totals[2]),
         "found_iou70": int(totals[3]),
         "sweep": {
-            f"{t:g}": {"false_positives_per_frame": v[1] / n, "found_iou50": int(v[2])}
-            for t, v in by_threshold.items()
+            f"{t:g}": {"false_positives_per_frame": v["false_positives"], "found_iou50": v["found"]}
+            for t, v in sweep.items()
         },
         "weights": summary["weights"],
         "pictures": str(out / "real" / "pictures" / "grid.png"),
