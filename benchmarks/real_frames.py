@@ -6,24 +6,26 @@ split it was trained beside, so that tuning to the 13 real frames shows:
 
 * Car AP|R40 (easy / moderate / hard) for 2D @0.7, BEV @0.7 / @0.5 and 3D @0.7 / @0.5, as
   ``evaluate.py`` computes them;
-* detections and false positives per frame at the run's deployed score threshold
-  (``eval.score_threshold``). A false positive is a Car detection that overlaps no
-  labelled Car (2D IoU >= 0.5, each labelled car taken by one detection, highest score
-  first) and is not excused the way the KITTI benchmark excuses it: overlapping a Van (IoU
-  >= 0.5) or lying at least half inside a DontCare region;
+* detections and false positives per frame at the run's evaluation score threshold
+  (``eval.score_threshold``, every box AP counts). A false positive is a Car detection that
+  overlaps no labelled Car (2D IoU >= 0.5, each labelled car taken by one detection, highest
+  score first) and is not excused the way the KITTI benchmark excuses it: overlapping a Van
+  (IoU >= 0.5) or lying at least half inside a DontCare region;
 * the real labelled cars at least 25 px tall that some detection finds at IoU 0.5 / 0.7;
 * Car 2D AP|R40 at IoU 0.5 (KITTI scores cars at 0.7: the difference is box looseness),
   and false positives per frame and cars found at score thresholds 0.5 to 0.9;
 * how the boxes of the cars found are off: over the labelled cars at least 25 px tall that a
-  detection at the deployed threshold overlaps at IoU >= 0.5 (the best one), the medians of
+  detection at the evaluation threshold overlaps at IoU >= 0.5 (the best one), the medians of
   detected / labelled 2D box width and height and of detected / labelled depth ``z`` (a
   detector that sees real cars as smaller or farther than its generated ones shows it here,
   and such a scale bias alone keeps boxes under KITTI's IoU 0.7);
 * a picture grid of the 13 frames (``OUT/real/pictures/grid.png``);
-* with the generated val split scored: the run's operating point chosen there, the score
-  threshold of best F1 (precision of the Car detections, recall of the labelled cars at least
-  25 px tall, both at IoU 0.5) on a grid of 0.5 to 0.95, and the real frames' false positives
-  and cars found at that threshold. Nothing real chooses it.
+* with the generated val split scored: the run's operating point chosen there
+  (``gac_jax/evaluation/operating_point.py``: the score threshold of best F1 on a grid from
+  ``eval.score_threshold`` to 0.95; the one the final evaluation of training records and a
+  default run deploys), the real frames' false positives and cars found at that threshold, and
+  their picture grid there (``OUT/real/pictures_operating_point/grid.png``). Nothing real
+  chooses it.
 
 ``--steps S ...`` also scores those earlier checkpoints of the run on the real frames and
 prints each figure's mean and range over the checkpoints: 13 frames (32 cars) and one
@@ -57,40 +59,14 @@ import numpy as np  # noqa: E402
 
 from gac_jax.data.kitti import parse_label, read_label, read_split  # noqa: E402
 from gac_jax.detection.nms import box_iou_matrix  # noqa: E402
+from gac_jax.evaluation.operating_point import (  # noqa: E402
+    MIN_HEIGHT_PX,
+    frame_counts,
+    tall_objects,
+    threshold_sweep,
+)
 
-MIN_HEIGHT_PX = 25.0  # KITTI's moderate height limit
 SWEEP = (0.5, 0.6, 0.7, 0.8, 0.9)  # score thresholds of the false-positive sweep
-OPERATING_GRID = tuple(round(0.5 + 0.05 * i, 2) for i in range(10))  # 0.5 ... 0.95
-
-
-def false_positives(gt, dt, threshold: float) -> tuple[int, int, int, int]:
-    """``(detections, false positives, cars found at IoU 0.5, at IoU 0.7)`` of one frame.
-
-    Args:
-      gt: the frame's labels (KittiObjects); dt: its Car detections (KittiObjects with scores).
-      threshold: detections below this score are left out.
-    """
-    keep = (dt.type == "Car") & (dt.score >= threshold)
-    boxes = dt.bbox[keep][np.argsort(-dt.score[keep], kind="stable")]
-    cars = gt.bbox[gt.type == "Car"]
-    vans = gt.bbox[gt.type == "Van"]
-    dontcare = gt.bbox[gt.type == "DontCare"]
-    taken = np.zeros(len(cars), bool)
-    fp = 0
-    iou_cars = box_iou_matrix(boxes, cars) if len(cars) else np.zeros((len(boxes), 0))
-    for i, box in enumerate(boxes):
-        free = np.flatnonzero(~taken & (iou_cars[i] >= 0.5))
-        if len(free):
-            taken[free[np.argmax(iou_cars[i, free])]] = True
-            continue
-        if len(vans) and box_iou_matrix(box[None], vans).max() >= 0.5:
-            continue
-        if len(dontcare) and _inside_share(box, dontcare).max() >= 0.5:
-            continue
-        fp += 1
-    tall = (cars[:, 3] - cars[:, 1]) >= MIN_HEIGHT_PX if len(cars) else np.zeros(0, bool)
-    best = iou_cars.max(axis=0) if len(boxes) and len(cars) else np.zeros(len(cars))
-    return len(boxes), fp, int(np.sum(tall & (best >= 0.5))), int(np.sum(tall & (best >= 0.7)))
 
 
 def box_scale(gts: list, dts: list, threshold: float) -> dict:
@@ -124,14 +100,6 @@ def box_scale(gts: list, dts: list, threshold: float) -> dict:
     return {"cars": len(ratios), "width": med[0], "height": med[1], "depth": med[2]}
 
 
-def _inside_share(box: np.ndarray, regions: np.ndarray) -> np.ndarray:
-    """(R,) share of ``box``'s area (xyxy, KITTI's +1 pixel convention) inside each region."""
-    iw = np.minimum(box[2], regions[:, 2]) - np.maximum(box[0], regions[:, 0]) + 1
-    ih = np.minimum(box[3], regions[:, 3]) - np.maximum(box[1], regions[:, 1]) + 1
-    area = (box[2] - box[0] + 1) * (box[3] - box[1] + 1)
-    return np.clip(iw, 0, None) * np.clip(ih, 0, None) / max(area, 1e-9)
-
-
 def car_row(metrics: dict) -> dict:
     """Car AP|R40 entries (easy, moderate, hard) of an ``evaluate.py`` result dict."""
     car = metrics["ap40"]["Car"]
@@ -142,52 +110,6 @@ def car_row(metrics: dict) -> dict:
         "bev@0.5": car["0.50"]["bev"],
         "3d@0.5": car["0.50"]["3d"],
     }
-
-
-def tall_cars(gt) -> int:
-    """Labelled cars of one frame at least ``MIN_HEIGHT_PX`` tall (those a detector should find)."""
-    cars = gt.bbox[gt.type == "Car"]
-    return int(np.sum((cars[:, 3] - cars[:, 1]) >= MIN_HEIGHT_PX))
-
-
-def threshold_sweep(gts: list, dts: list, thresholds) -> dict:
-    """Detections, false positives, precision, recall and F1 per score threshold.
-
-    Args:
-      gts, dts: labels and Car detections (KittiObjects with scores) per frame, same order.
-      thresholds: score thresholds.
-
-    Returns:
-      ``{threshold: {...}}``: per frame ``detections`` and ``false_positives``
-      (:func:`false_positives`), ``found`` (labelled cars at least 25 px tall found at IoU 0.5),
-      ``precision`` (share of the detections that are not false), ``recall`` (``found`` over
-      the labelled cars at least 25 px tall) and their harmonic mean ``f1``.
-    """
-    n = max(len(gts), 1)
-    tall = sum(tall_cars(g) for g in gts)
-    out = {}
-    for t in thresholds:
-        tot = np.zeros(4, np.int64)
-        for gt, dt in zip(gts, dts, strict=True):
-            if len(dt):
-                tot += false_positives(gt, dt, t)
-        precision = (tot[0] - tot[1]) / tot[0] if tot[0] else 0.0
-        recall = tot[2] / tall if tall else 0.0
-        f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
-        out[float(t)] = {
-            "detections": tot[0] / n,
-            "false_positives": tot[1] / n,
-            "found": int(tot[2]),
-            "precision": float(precision),
-            "recall": float(recall),
-            "f1": float(f1),
-        }
-    return out
-
-
-def operating_point(sweep: dict) -> float:
-    """The threshold of best F1 in :func:`threshold_sweep`'s output (the lowest on a tie)."""
-    return max(sorted(sweep), key=lambda t: (sweep[t]["f1"], -t))
 
 
 def loose_2d_ap40(gts: list, dts: list) -> list[float]:
@@ -224,7 +146,7 @@ def score_real(workdir: Path, samples: Path, out: Path, step: int | None = None)
         gts.append(gt)
         dts.append(dt if dt is not None else parse_label("", with_score=True))
         if dt is not None and len(dt):
-            totals += false_positives(gt, dt, threshold)
+            totals += frame_counts(gt, dt, threshold)
     n = len(ids)
     sweep = threshold_sweep(gts, dts, SWEEP)
     return {
@@ -233,7 +155,7 @@ def score_real(workdir: Path, samples: Path, out: Path, step: int | None = None)
         "ap40": {**car_row(summary["metrics"]), "2d@0.5": loose_2d_ap40(gts, dts)},
         "detections_per_frame": totals[0] / n,
         "false_positives_per_frame": totals[1] / n,
-        "cars_25px": sum(tall_cars(g) for g in gts),
+        "cars_25px": sum(tall_objects(g) for g in gts),
         "box_scale": box_scale(gts, dts, threshold),
         "found_iou50": int(totals[2]),
         "found_iou70": int(totals[3]),
@@ -248,28 +170,30 @@ def score_real(workdir: Path, samples: Path, out: Path, step: int | None = None)
 
 
 def score_generated(workdir: Path, out: Path) -> dict:
-    from gac_jax.builders.datasets import prepare_dataset
     from gac_jax.cli.evaluate_detector import evaluate_detector_workdir
-    from gac_jax.data.sources import open_object_source
-    from gac_jax.evaluation.detector_evaluator import ground_truth
-    from gac_jax.trained.run_config import load_run_config
 
     summary = evaluate_detector_workdir(workdir, out_dir=out / "generated_val")
-    data = load_run_config(workdir, None, None).data
-    source = open_object_source(prepare_dataset(data), data.val_split, use_right_image=False)
-    result_dir = Path(summary["result_dir"])
-    gts, dts = [], []
-    for i, fid in enumerate(source.frame_ids):
-        path = result_dir / f"{fid}.txt"
-        gts.append(ground_truth(source, i))
-        dts.append(read_label(path, with_score=True) if path.exists() else parse_label("", True))
-    sweep = threshold_sweep(gts, dts, OPERATING_GRID)
+    record = summary["operating_point"]  # gac_jax/evaluation/operating_point.py
     return {
         "ap40": car_row(summary["metrics"]),
         "frames": summary["num_frames"],
-        "sweep": {f"{t:g}": v for t, v in sweep.items()},
-        "operating_point": operating_point(sweep),
+        "sweep": record["sweep"],
+        "operating_point": record["threshold"],
     }
+
+
+def operating_point_pictures(samples: Path, dts: list, threshold: float, out: Path) -> Path:
+    """The picture grid of the real frames at the operating point (what predict and the streams
+    of a default run show), labels drawn as in the evaluation's grid; returns its path."""
+    from gac_jax.data.sources import open_object_source
+    from gac_jax.drawing.detection_pictures import save_pictures
+
+    source = open_object_source(samples / "object", "labeled", use_right_image=False)
+    ids = read_split(samples / "object" / "ImageSets" / "labeled.txt")
+    kept = {fid: dt.select(dt.score >= threshold) for fid, dt in zip(ids, dts, strict=True)}
+    folder = out / "real" / "pictures_operating_point"
+    save_pictures(source, kept, folder, ("Car",), frame_ids=ids)
+    return folder / "grid.png"
 
 
 def score_depth(depth_workdir: Path, samples: Path, out: Path) -> dict:
@@ -354,13 +278,17 @@ def main() -> None:
     if args.clip:
         result["clip"] = run_clip(args.workdir, args.samples, out)
     gts, dts = result["real"].pop("_frames")
-    if "generated_val" in result:
+    if "generated_val" in result and result["generated_val"]["operating_point"] is not None:
         t = result["generated_val"]["operating_point"]
-        result["real"]["at_operating_point"] = {"threshold": t, **threshold_sweep(gts, dts, [t])[t]}
+        result["real"]["at_operating_point"] = {
+            "threshold": t,
+            **threshold_sweep(gts, dts, [t])[t],
+            "pictures": str(operating_point_pictures(args.samples, dts, t, out)),
+        }
 
     r = result["real"]
     print(f"\nmachine: {one_line(describe_machine())}")
-    print(f"weights: {r['weights']}; score threshold {r['score_threshold']}")
+    print(f"weights: {r['weights']}; evaluation score threshold {r['score_threshold']}")
     print("Car AP|R40 easy / moderate / hard:")
     sets = [("real (13 frames)", r["ap40"])]
     if "generated_val" in result:
@@ -388,13 +316,14 @@ def main() -> None:
     )
     if "at_operating_point" in r:
         o = r["at_operating_point"]
-        g = result["generated_val"]["sweep"][f"{o['threshold']:g}"]
+        g = result["generated_val"]["sweep"][f"{o['threshold']:.2f}"]
         print(
             f"  at the operating point chosen on generated val (score {o['threshold']:g}, best F1 "
             f"there: precision {g['precision']:.2f}, recall {g['recall']:.2f}, "
             f"{g['false_positives']:.2f} false positives per frame): real frames "
             f"{o['false_positives']:.2f} false positives per frame, {o['found']} cars found at "
-            f"IoU 0.5, precision {o['precision']:.2f}, recall {o['recall']:.2f}"
+            f"IoU 0.5, precision {o['precision']:.2f}, recall {o['recall']:.2f}; pictures: "
+            f"{o['pictures']}"
         )
     if "depth" in result:
         d = result["depth"]

@@ -82,7 +82,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.train.clip_norm = 1.0
     c.train.log_every = 20
     c.train.checkpoint_every = 200
-    c.eval.score_threshold = 0.5
+    c.eval.score_threshold = 0.5  # AP needs the low-scoring boxes
+    # a camera runs at the operating point the final evaluation records (best F1 on val)
+    c.eval.deploy_threshold = "operating_point"
 
     if "kittirig" in variants and "multirig" not in variants:
         raise ValueError("variant 'kittirig' needs 'multirig' (e.g. :multirig,kittirig)")
@@ -120,4 +122,5 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         c.train.checkpoint_every = 2
         c.eval.hill_climbing = False
         c.eval.top_k = 20
+        c.eval.deploy_threshold = "score_threshold"  # tests set eval.score_threshold
     return c

@@ -1,5 +1,6 @@
-"""The real-frame benchmark's own counts (benchmarks/real_frames.py), on hand-made labels:
-false positives with KITTI's excuses, cars found, and the box-scale medians. No network runs."""
+"""The real-frame benchmark's own figures (benchmarks/real_frames.py), on hand-made labels: the
+box-scale medians of the cars found (its false-positive counts and the operating point are the
+package's: tests/test_operating_point.py). No network runs."""
 
 from __future__ import annotations
 
@@ -36,22 +37,6 @@ GT = _objects(
 )
 
 
-def test_false_positives_excuse_vans_and_dontcare_and_take_each_car_once():
-    dt = _objects(
-        [
-            _line("Car", (100, 100, 200, 160), z=22.0, score=0.9),  # the car
-            _line("Car", (102, 100, 202, 160), score=0.8),  # the same car again: false
-            _line("Car", (600, 100, 700, 180), score=0.7),  # on the Van: excused
-            _line("Car", (810, 110, 860, 140), score=0.7),  # inside DontCare: excused
-            _line("Car", (1000, 100, 1050, 140), score=0.6),  # nothing there: false
-            _line("Car", (300, 100, 350, 140), score=0.3),  # below the threshold
-        ],
-        True,
-    )
-    assert real_frames.false_positives(GT, dt, 0.5) == (5, 2, 1, 1)
-    assert real_frames.false_positives(GT, dt, 0.85) == (1, 0, 1, 1)
-
-
 def test_box_scale_medians_of_the_cars_found():
     # a box 0.8 x 0.9 of the label's about its centre (IoU 0.72), 1.1 times as far
     dt = _objects([_line("Car", (110, 103, 190, 157), z=22.0, score=0.9)], True)
@@ -65,34 +50,3 @@ def test_box_scale_medians_of_the_cars_found():
     far = _objects([_line("Car", (150, 100, 250, 160), score=0.9)], True)  # IoU 1/3
     assert real_frames.box_scale([GT], [far], 0.5)["cars"] == 0
     assert np.isnan(real_frames.box_scale([GT], [far], 0.5)["width"])
-
-
-def test_threshold_sweep_and_operating_point_by_hand():
-    dt = _objects(
-        [
-            _line("Car", (100, 100, 200, 160), score=0.9),  # the car (the one >= 25 px tall)
-            _line("Car", (1000, 100, 1050, 140), score=0.7),  # nothing there: false
-            _line("Car", (1100, 100, 1150, 140), score=0.55),  # nothing there: false
-        ],
-        True,
-    )
-    empty = _objects([], True)
-    sweep = real_frames.threshold_sweep([GT, GT], [dt, empty], (0.5, 0.6, 0.8, 0.95))
-    # two frames: 3 detections of which 2 false at 0.5; one of the two tall cars found
-    assert sweep[0.5]["detections"] == 1.5 and sweep[0.5]["false_positives"] == 1.0
-    assert sweep[0.5]["precision"] == pytest.approx(1 / 3)
-    assert sweep[0.5]["recall"] == pytest.approx(0.5)
-    assert sweep[0.5]["f1"] == pytest.approx(2 * (1 / 3) * 0.5 / (1 / 3 + 0.5))
-    assert sweep[0.6]["precision"] == pytest.approx(0.5) and sweep[0.6]["found"] == 1
-    assert sweep[0.8] == {
-        "detections": 0.5,
-        "false_positives": 0.0,
-        "found": 1,
-        "precision": 1.0,
-        "recall": 0.5,
-        "f1": pytest.approx(2 / 3),
-    }
-    assert sweep[0.95]["f1"] == 0.0 and sweep[0.95]["found"] == 0
-    assert real_frames.operating_point(sweep) == 0.8
-    # a tie goes to the lowest threshold
-    assert real_frames.operating_point({0.7: {"f1": 0.5}, 0.6: {"f1": 0.5}}) == 0.6

@@ -49,6 +49,7 @@ from gac_jax.deploy.int8 import Int8Settings
 from gac_jax.detection.inference import candidates_to_objects, make_predict_fn
 from gac_jax.evaluation.detector_evaluator import InputArrays
 from gac_jax.trained.detector import LoadedDetector, load_detector, postprocess_config
+from gac_jax.trained.operating_point import apply_deploy_threshold
 from gac_jax.trained.run_config import load_run_config
 
 
@@ -80,9 +81,11 @@ class Detector3D(StagedModel):
       config: the run config; class_names: the model's classes (label order);
       input_size: (h, w) of the network input; runtime, precision: what runs the network;
       batch_size: images per network call; weights: where the weights came from; step: the
-      checkpoint step (None for converted weights); load_s: seconds of setting up the
-      runtime (exported runtimes: export on first use, load, warm-up; jax: the weights' transfer
-      to the device; its jit compiles on the first call, or in :meth:`warmup`).
+      checkpoint step (None for converted weights); score_threshold: detections below it are
+      dropped; threshold_source: one line saying which threshold runs and where it came from
+      (the operating point recorded for these weights, or the config's); load_s: seconds of
+      setting up the runtime (exported runtimes: export on first use, load, warm-up; jax: the
+      weights' transfer to the device; its jit compiles on the first call, or in :meth:`warmup`).
     """
 
     def __init__(
@@ -111,6 +114,7 @@ class Detector3D(StagedModel):
         self._transform = eval_transform(config)
         self._arrays = InputArrays(config.model.gac.camera_height)
         self._postprocess = postprocess_config(config)
+        self.threshold_source = f"score threshold {float(config.eval.score_threshold):.2f}"
         self._lock = threading.Lock()
         t0 = time.perf_counter()
         if runtime == "jax":
@@ -168,7 +172,9 @@ class Detector3D(StagedModel):
             kernels where the CPU has them); ``int8`` (openvino: the NNCF-quantized network,
             calibrated on the config's training split on first use).
           threads: CPU threads of ONNX Runtime / OpenVINO (default: every usable core).
-          score_threshold: keep detections above it (default: the config's).
+          score_threshold: keep detections above it (default: the run's deployed threshold,
+            its operating point where the config asks for it and one is recorded for these
+            weights, else ``eval.score_threshold``; :mod:`gac_jax.trained.operating_point`).
           batch_size: images per network call.
           int8: how the int8 network is calibrated and which layers stay float32
             (:class:`~gac_jax.deploy.int8.Int8Settings`, e.g. ``keep_heading=True``;
@@ -198,7 +204,13 @@ class Detector3D(StagedModel):
         except ValueError as e:  # KittiFormatError: a missing step or an unfitting checkpoint
             argument = "step" if step is not None and "no checkpoint step" in str(e) else "workdir"
             raise InputError(argument, str(e)) from None
-        return cls(detector, workdir, **options, int8=int8, requests=requests)
+        try:
+            threshold_line = apply_deploy_threshold(workdir, detector, explicit=score is not None)
+        except ValueError as e:  # an unknown eval.deploy_threshold
+            raise InputError("workdir", f"{workdir / 'config.json'}: {e}") from None
+        made = cls(detector, workdir, **options, int8=int8, requests=requests)
+        made.threshold_source = threshold_line
+        return made
 
     @classmethod
     def from_weights(
@@ -267,6 +279,10 @@ class Detector3D(StagedModel):
     @property
     def step(self) -> int | None:
         return self._detector.step
+
+    @property
+    def score_threshold(self) -> float:
+        return float(self._detector.config.eval.score_threshold)
 
     def __repr__(self) -> str:
         return f"Detector3D({self.weights}; {', '.join(self.class_names)}; {self._describe()})"

@@ -44,11 +44,13 @@ from gac_jax.deploy.runtime_choice import (
 )
 from gac_jax.drawing.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.ap_table import format_table
+from gac_jax.evaluation.operating_point import describe
 from gac_jax.guard.verdict_file import network_identity, precision_line
 from gac_jax.trained.detector import LoadedDetector, evaluator_for, load_detector
 
 # imported from here by tests and benchmarks (explicit re-exports)
 from gac_jax.trained.detector import postprocess_config as postprocess_config
+from gac_jax.trained.operating_point import write_operating_point
 from gac_jax.trained.run_config import load_run_config
 from gac_jax.training import workdir_lock
 
@@ -212,6 +214,9 @@ def evaluate_detector_workdir(
         print(f"network: exported ONNX in {runtime} ({precision})")
     print(format_timing(speed, compile_s, threads), end="")
     print(format_candidates(result["candidates"]), end="", flush=True)
+    record = result["operating_point"]
+    write_operating_point(out, record, detector.step, detector.weights_sha256, split)
+    print(describe(record), flush=True)
     pictures = save_evaluation_pictures(
         source, result_dir, save_images, tuple(config.data.classes), out / "pictures"
     )
@@ -224,6 +229,7 @@ def evaluate_detector_workdir(
         "compile_s": compile_s,
         "num_frames": result["num_frames"],
         "candidates": result["candidates"],
+        "operating_point": record,
         "predicted": int(result["timings"]["num_frames"]),
         "resumed": resumed,
         "result_dir": str(result_dir),

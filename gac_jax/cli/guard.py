@@ -185,6 +185,8 @@ def guard_workdir(args) -> dict:
     from gac_jax.evaluation.kitti_object import evaluate_detections
     from gac_jax.guard import ap_bootstrap, criteria, detector_rule, verdict_file
     from gac_jax.guard.ap_resampling import car_ap40
+    from gac_jax.trained.detector import load_detector
+    from gac_jax.trained.operating_point import apply_deploy_threshold
     from gac_jax.trained.run_config import load_run_config
     from gac_jax.training import workdir_lock
 
@@ -217,6 +219,10 @@ def guard_workdir(args) -> dict:
     alpha = detector_rule.ALPHA if args.alpha is None else args.alpha
     tol = criteria.HEADING_TOLERANCE_DEG
     tol = tol if args.heading_tolerance is None else args.heading_tolerance
+    # the verdicts hold at the threshold the run is deployed at (its recorded operating point
+    # where its config asks for one), and at the grid's thresholds above it
+    deployed = load_detector(workdir, config, step=args.step)
+    print(apply_deploy_threshold(workdir, deployed, explicit=False), flush=True)
     min_score = float(config.eval.score_threshold)
     thresholds = criteria.score_thresholds(min_score)
     ap_margin = detector_rule.AP_MARGIN if args.ap_margin is None else args.ap_margin

@@ -184,7 +184,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--calib-camera", type=int, choices=(2, 3), default=2, help="P2 or P3 of the calibration"
     )
-    parser.add_argument("--score-threshold", type=float, help="default: the config's")
+    parser.add_argument(
+        "--score-threshold",
+        type=float,
+        help="default: the run's deployed threshold (its recorded operating point where its "
+        "config says eval.deploy_threshold=operating_point, else eval.score_threshold)",
+    )
     parser.add_argument("--batch-size", type=int, default=1, help="images per model call")
     parser.add_argument("--threads", type=int, help="CPU threads of XLA (default: all usable)")
     parser.add_argument(
@@ -211,6 +216,7 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     from gac_jax.drawing.detection_pictures import save_pictures
     from gac_jax.guard.verdict_file import precision_line
     from gac_jax.trained.detector import evaluator_for, load_detector
+    from gac_jax.trained.operating_point import apply_deploy_threshold
     from gac_jax.trained.run_config import load_run_config
 
     workdir = Path(args.workdir)
@@ -226,12 +232,17 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
     detector = load_detector(
         workdir, config, step=args.step, checkpoint=args.checkpoint, dtype=dtype
     )
+    try:
+        threshold_line = apply_deploy_threshold(workdir, detector, bool(overrides))
+    except ValueError as e:  # an unknown eval.deploy_threshold
+        raise KittiFormatError(args.config or workdir / "config.json", str(e)) from None
     d = config.data
     source = ImageSource(images, calibs, args.calib_camera, (d.crop_top, d.height, d.width))
     evaluator = evaluator_for(detector, source, args.batch_size)
     name = Path(args.input).resolve()
     out = Path(args.out) if args.out else workdir / "predict" / (name.stem or "input")
     print(f"{detector.weights}: {len(images)} images -> {out}", flush=True)
+    print(threshold_line, flush=True)
     int8 = getattr(args, "int8", None)
     if args.runtime == "jax":
         compile_s = evaluator.compile(detector.variables, (d.height, d.width))

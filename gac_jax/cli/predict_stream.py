@@ -323,6 +323,7 @@ def _run_stream(args: argparse.Namespace, threads: int, start: StreamStart, sign
         fps = f"{source.fps:g} frames/s" if source.fps else "fps unknown"
         count = f", {source.expected_frames} frames" if source.expected_frames else ""
         say(f"{detector.weights}: {source.name} ({w}x{h}, {fps}{count}) -> {plan.folder}")
+        say(detector.threshold_source)
         say(detector.precision_line())
         say(budget.describe(detector.runtime))
         warmup_s = detector.warmup()

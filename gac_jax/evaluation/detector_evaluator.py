@@ -26,6 +26,7 @@ from gac_jax.data.kitti import KittiObjects, read_label, write_label
 from gac_jax.data.loader import Loader, collate, plane_array
 from gac_jax.detection.inference import PostprocessConfig, make_predict_fn, postprocess
 from gac_jax.evaluation.kitti_object import evaluate_detections
+from gac_jax.evaluation.operating_point import operating_point
 from gac_jax.geometry import DEFAULT_CAMERA_HEIGHT
 
 INPUT_KEYS = ("image", "P2", "plane", "image_transform", "original_size")
@@ -336,8 +337,9 @@ class DetectionEvaluator:
     ) -> dict:
         """Runs :meth:`predict_split` and the KITTI protocol.
 
-        Returns ``{'metrics', 'timings', 'num_frames', 'candidates'}`` (the last:
-        :meth:`candidate_summary`).
+        Returns ``{'metrics', 'timings', 'num_frames', 'candidates', 'operating_point'}``
+        (:meth:`candidate_summary`; :func:`gac_jax.evaluation.operating_point.operating_point`
+        of these detections).
         """
         detections, timings = self.predict_split(variables, result_dir, resume, max_batches)
         ids = self.frame_ids()
@@ -352,4 +354,7 @@ class DetectionEvaluator:
             "timings": timings,
             "num_frames": len(index),
             "candidates": self.candidate_summary(),
+            "operating_point": operating_point(
+                gt, dt, self.class_names, self.postprocess_config.score_threshold
+            ),
         }

@@ -37,6 +37,9 @@ from gac_jax.detection.anchors import generate_anchors
 from gac_jax.detection.detection_loss import detection_loss
 from gac_jax.drawing.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.ap_table import format_table
+from gac_jax.evaluation.operating_point import describe
+from gac_jax.trained.fingerprint import weights_sha256
+from gac_jax.trained.operating_point import write_operating_point
 from gac_jax.trainers.common import (
     NonFiniteLossError,  # noqa: F401 - re-exported: callers catch detect3d.NonFiniteLossError
     check_finite,
@@ -201,6 +204,11 @@ def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dic
             writer.write(step, kind="eval", **out)
             with atomic_write(workdir / "results" / f"step_{step}" / "metrics.json") as f:
                 json.dump(out, f, indent=2)
+            record = out["operating_point"]
+            write_operating_point(
+                result_dir.parent, record, step, weights_sha256(variables), config.data.val_split
+            )
+            print(describe(record), flush=True)
             pictures = save_evaluation_pictures(
                 evaluator.source, result_dir, config.eval.num_pictures, classes
             )
