@@ -216,7 +216,7 @@ def evaluate_detector_workdir(
     print(format_candidates(result["candidates"]), end="", flush=True)
     record = result["operating_point"]
     write_operating_point(out, record, detector.step, detector.weights_sha256, split)
-    print(describe(record), flush=True)
+    print(f"{describe(record)} on split {split!r}", flush=True)
     pictures = save_evaluation_pictures(
         source, result_dir, save_images, tuple(config.data.classes), out / "pictures"
     )
