@@ -218,3 +218,18 @@ def test_predict_cli_runs_at_the_operating_point_and_says_so(
         assert got == want, fid
         kept += len(got)
     assert 0 < kept < len(scores)
+
+
+def test_unknown_deploy_mode_is_one_line_naming_the_config(tiny_detect3d_workdir, tmp_path, capsys):
+    from gac_jax.cli import guard, predict
+
+    run = _deployable_copy(tiny_detect3d_workdir, tmp_path, "best")
+    root = Path(json.loads((run / "config.json").read_text())["data"]["root"])
+    images = root / "training" / "image_2"  # with ../calib
+    assert predict.main(["--workdir", str(run), str(images)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "config.json" in err[0]
+    assert "eval.deploy_threshold must be one of" in err[0]
+    assert guard.main(["--workdir", str(run), "--candidates", "onnxruntime:f32"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "config.json: eval.deploy_threshold must be one of" in err[0]

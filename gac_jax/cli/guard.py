@@ -222,7 +222,10 @@ def guard_workdir(args) -> dict:
     # the verdicts hold at the threshold the run is deployed at (its recorded operating point
     # where its config asks for one), and at the grid's thresholds above it
     deployed = load_detector(workdir, config, step=args.step)
-    print(apply_deploy_threshold(workdir, deployed, explicit=False), flush=True)
+    try:
+        print(apply_deploy_threshold(workdir, deployed, explicit=False), flush=True)
+    except ValueError as e:  # an unknown eval.deploy_threshold
+        raise KittiFormatError(workdir / "config.json", str(e)) from None
     min_score = float(config.eval.score_threshold)
     thresholds = criteria.score_thresholds(min_score)
     ap_margin = detector_rule.AP_MARGIN if args.ap_margin is None else args.ap_margin

@@ -233,7 +233,8 @@ def predict(args: argparse.Namespace, threads: int) -> Path:
         workdir, config, step=args.step, checkpoint=args.checkpoint, dtype=dtype
     )
     try:
-        threshold_line = apply_deploy_threshold(workdir, detector, bool(overrides))
+        explicit = args.score_threshold is not None
+        threshold_line = apply_deploy_threshold(workdir, detector, explicit)
     except ValueError as e:  # an unknown eval.deploy_threshold
         raise KittiFormatError(args.config or workdir / "config.json", str(e)) from None
     d = config.data
