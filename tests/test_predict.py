@@ -37,6 +37,7 @@ def test_labeled_images_give_the_trainer_results(
     assert not (out / "pictures").exists()
     assert f"{len(expected)} images" in stdout
     assert "precision: jax float32, the guard's reference" in stdout
+    assert "score threshold 0.00 (eval.score_threshold)" in stdout
 
 
 def test_unlabeled_frames_and_other_image_sizes(

@@ -115,6 +115,7 @@ def test_a_generated_clip_gives_the_image_predict_results(
     assert len(summary) == 1 and "frames/s, latency median" in summary[0], stdout
     assert "per frame, each stage" in stdout and "network" in stdout
     assert "precision: jax float32, the guard's reference" in stdout
+    assert "score threshold 0.00 (eval.score_threshold)" in stdout  # the tiny config deploys it
 
 
 def test_a_video_file_gives_the_image_predict_results(
