@@ -9,8 +9,8 @@ import shutil
 from pathlib import Path
 
 import pytest
+from label_cases import label_line, objects
 
-from gac_jax.data.kitti import parse_label
 from gac_jax.evaluation.operating_point import (
     best_f1_threshold,
     frame_counts,
@@ -19,41 +19,30 @@ from gac_jax.evaluation.operating_point import (
     threshold_sweep,
 )
 
-
-def _line(kind, box, score=None):
-    x0, y0, x1, y1 = box
-    s = f"{kind} 0 0 0 {x0} {y0} {x1} {y1} 1.5 1.6 3.9 0 1.6 20 0"
-    return s if score is None else f"{s} {score}"
-
-
-def _objects(lines, with_score):
-    return parse_label("\n".join(lines), with_score=with_score)
-
-
-GT = _objects(
+GT = objects(
     [
-        _line("Car", (100, 100, 200, 160)),
-        _line("Car", (400, 100, 440, 120)),  # 20 px tall: not counted as a car to find
-        _line("Van", (600, 100, 700, 180)),
-        _line("DontCare", (800, 100, 900, 150)),
-        _line("Pedestrian", (300, 100, 330, 180)),
-        _line("Person_sitting", (1000, 200, 1030, 260)),
+        label_line("Car", (100, 100, 200, 160)),
+        label_line("Car", (400, 100, 440, 120)),  # 20 px tall: not counted as a car to find
+        label_line("Van", (600, 100, 700, 180)),
+        label_line("DontCare", (800, 100, 900, 150)),
+        label_line("Pedestrian", (300, 100, 330, 180)),
+        label_line("Person_sitting", (1000, 200, 1030, 260)),
     ],
     False,
 )
 
 
 def test_false_positives_excuse_neighbours_and_dontcare_and_take_each_object_once():
-    dt = _objects(
+    dt = objects(
         [
-            _line("Car", (100, 100, 200, 160), score=0.9),  # the car
-            _line("Car", (102, 100, 202, 160), score=0.8),  # the same car again: false
-            _line("Car", (600, 100, 700, 180), score=0.7),  # on the Van: excused
-            _line("Car", (810, 110, 860, 140), score=0.7),  # inside DontCare: excused
-            _line("Car", (1000, 100, 1050, 140), score=0.6),  # nothing there: false
-            _line("Car", (300, 100, 350, 140), score=0.3),  # below the threshold
-            _line("Pedestrian", (1000, 200, 1030, 260), score=0.9),  # Person_sitting: excused
-            _line("Pedestrian", (600, 100, 700, 180), score=0.9),  # a Van is no excuse: false
+            label_line("Car", (100, 100, 200, 160), score=0.9),  # the car
+            label_line("Car", (102, 100, 202, 160), score=0.8),  # the same car again: false
+            label_line("Car", (600, 100, 700, 180), score=0.7),  # on the Van: excused
+            label_line("Car", (810, 110, 860, 140), score=0.7),  # inside DontCare: excused
+            label_line("Car", (1000, 100, 1050, 140), score=0.6),  # nothing there: false
+            label_line("Car", (300, 100, 350, 140), score=0.3),  # below the threshold
+            label_line("Pedestrian", (1000, 200, 1030, 260), score=0.9),  # Person_sitting: excused
+            label_line("Pedestrian", (600, 100, 700, 180), score=0.9),  # a Van is no excuse: false
         ],
         True,
     )
@@ -63,15 +52,15 @@ def test_false_positives_excuse_neighbours_and_dontcare_and_take_each_object_onc
 
 
 def test_threshold_sweep_and_best_f1_by_hand():
-    dt = _objects(
+    dt = objects(
         [
-            _line("Car", (100, 100, 200, 160), score=0.9),  # the car (the one >= 25 px tall)
-            _line("Car", (1000, 100, 1050, 140), score=0.7),  # nothing there: false
-            _line("Car", (1100, 100, 1150, 140), score=0.55),  # nothing there: false
+            label_line("Car", (100, 100, 200, 160), score=0.9),  # the car (the one >= 25 px tall)
+            label_line("Car", (1000, 100, 1050, 140), score=0.7),  # nothing there: false
+            label_line("Car", (1100, 100, 1150, 140), score=0.55),  # nothing there: false
         ],
         True,
     )
-    empty = _objects([], True)
+    empty = objects([], True)
     sweep = threshold_sweep([GT, GT], [dt, empty], (0.5, 0.6, 0.8, 0.95))
     # two frames: 3 detections of which 2 false at 0.5; one of the two tall cars found
     assert sweep[0.5]["detections"] == 1.5 and sweep[0.5]["false_positives"] == 1.0
@@ -105,15 +94,19 @@ def test_threshold_grid_starts_at_the_evaluation_threshold():
 
 
 def test_operating_point_record_and_none_when_nothing_is_found():
-    dt = _objects(
-        [_line("Car", (100, 100, 200, 160), 0.9), _line("Car", (1000, 100, 1050, 140), 0.6)], True
+    dt = objects(
+        [
+            label_line("Car", (100, 100, 200, 160), score=0.9),
+            label_line("Car", (1000, 100, 1050, 140), score=0.6),
+        ],
+        True,
     )
     record = operating_point([GT], [dt], ("Car",), 0.5)
     assert record["threshold"] == 0.65  # the false box (0.6) dropped, the car kept
     assert record["frames"] == 1 and record["objects"] == 1 and record["classes"] == ["Car"]
     assert record["sweep"]["0.65"]["f1"] == 1.0 and record["sweep"]["0.50"]["f1"] < 1.0
     json.dumps(record)  # written as it is
-    miss = _objects([_line("Car", (1000, 100, 1050, 140), 0.9)], True)
+    miss = objects([label_line("Car", (1000, 100, 1050, 140), score=0.9)], True)
     assert operating_point([GT], [miss], ("Car",), 0.5)["threshold"] is None
 
 
