@@ -23,7 +23,7 @@ import pytest
 import shapely
 
 from gac_jax.data import files, kitti
-from gac_jax.data.synthetic import calibration, render, shapes
+from gac_jax.data.synthetic import calibration, render, shapes, vehicles
 from gac_jax.data.synthetic.__main__ import main as cli_main
 from gac_jax.data.synthetic.frame import make_frame
 from gac_jax.data.synthetic.scene import CLASS_SIZES
@@ -338,23 +338,28 @@ def test_ray_caster_matches_hand_computed_box():
     assert (cube.normals[face[hit]] @ [0, 0, -1] > 0.999).all()
 
 
-@pytest.mark.parametrize("cls", ["Car", "Pedestrian", "Cyclist"])
+@pytest.mark.parametrize("cls", ["Car", "Pedestrian", "Cyclist", "Van", "Truck"])
 def test_part_models_inside_their_box(cls):
     rng = np.random.default_rng(0)
     build = {
         "Car": lambda h, w, l: shapes.car_parts(h, w, l, np.array([0.5, 0.1, 0.1]), rng),
         "Pedestrian": lambda h, w, l: shapes.pedestrian_parts(h, w, l, rng),
         "Cyclist": lambda h, w, l: shapes.cyclist_parts(h, w, l, rng),
+        "Van": lambda h, w, l: vehicles.van_parts(h, w, l, np.array([0.9, 0.9, 0.9]), rng),
+        "Truck": lambda h, w, l: vehicles.truck_parts(h, w, l, np.array([0.2, 0.3, 0.6]), rng),
     }[cls]
     for _ in range(30):
-        dims = [m + sd * np.clip(rng.standard_normal(), -2.5, 2.5) for m, sd in CLASS_SIZES[cls]]
+        sizes = {**CLASS_SIZES, **vehicles.SIZES}[cls]
+        dims = [m + sd * np.clip(rng.standard_normal(), -2.5, 2.5) for m, sd in sizes]
         parts = build(*dims)
         h, w, l = dims
         verts = np.concatenate([p.vertices for p in parts])
         assert _inside_box(verts, np.array(dims), tol=1e-9).all()
         for p in parts:  # every stored half-space really bounds its vertices, no empty faces
             assert p.contains(p.vertices, tol=1e-9).all()
-        fill = {"Car": 0.95, "Pedestrian": 0.35, "Cyclist": 0.9}[cls]  # share of l the model spans
+        fill = {"Car": 0.95, "Pedestrian": 0.35, "Cyclist": 0.9, "Van": 0.95, "Truck": 0.95}[
+            cls
+        ]  # share of l the model spans
         assert np.ptp(verts[:, 1]) > 0.95 * h and np.ptp(verts[:, 0]) > fill * l
 
 

@@ -27,6 +27,8 @@ def synthetic_config() -> ml_collections.ConfigDict:
     solids and verges (:mod:`gac_jax.data.synthetic.photo_textures`; the same);
     ``randomize_cars``: share of frames whose cars get random paint, glass and tyres
     (:func:`gac_jax.data.synthetic.domain_randomization.randomize_cars`; the same);
+    ``large_vehicles``: share of frames with vans and trucks, labelled ``Van`` / ``Truck``
+    (:mod:`gac_jax.data.synthetic.vehicles`; the same);
     ``workers``: generator processes (0: one per core; the content does not depend on them).
     Both configs share it, so the detector and the depth network train on one generated
     dataset.
@@ -34,7 +36,7 @@ def synthetic_config() -> ml_collections.ConfigDict:
     return ml_collections.ConfigDict(
         dict(
             num_frames=1000, seed=0, height=375, width=1242, val_fraction=0.5, rigs="kitti",
-            randomize=0.0, photo=0.0, randomize_cars=0.0, workers=0,
+            randomize=0.0, photo=0.0, randomize_cars=0.0, large_vehicles=0.0, workers=0,
         )
     )  # fmt: skip
 
@@ -56,6 +58,8 @@ def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
     name += f"_ph{photo:g}" if photo > 0 else ""
     cars = float(s.get("randomize_cars", 0.0))
     name += f"_dc{cars:g}" if cars > 0 else ""
+    large = float(s.get("large_vehicles", 0.0))
+    name += f"_lv{large:g}" if large > 0 else ""
     rig_set = s.get("rigs", "kitti")
     return default_cache_dir() / (name if rig_set == "kitti" else f"{name}_{rig_set}rig")
 
@@ -97,6 +101,7 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
                 randomize=float(s.get("randomize", 0.0)),
                 photo=float(s.get("photo", 0.0)),
                 randomize_cars=float(s.get("randomize_cars", 0.0)),
+                large_vehicles=float(s.get("large_vehicles", 0.0)),
                 workers=s.get("workers") or None,  # 0 / absent: one per core
                 progress=True,  # what, where and about how long; then a bar or a line per ~10 %
                 should_stop=stopping.stop_requested,  # a stop signal stops it at once

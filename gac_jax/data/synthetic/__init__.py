@@ -26,6 +26,7 @@ Modules:
 * ``calibration`` - camera rigs (real KITTI intrinsics), calib file contents.
 * ``rigs`` - rig sets: KITTI's (default) or eight vehicles with ground planes (``--rigs multi``).
 * ``shapes`` - convex solids; part models of cars, pedestrians, cyclists.
+  ``vehicles`` - vans and trucks (``--large-vehicles``).
 * ``scene`` / ``roadside`` - sampling a scene (road, roadside, road users, light).
 * ``render`` - ray-casting z-buffer rasteriser; ``materials`` - surface appearance.
 * ``domain_randomization`` - random colours and patterns on the background (``--randomize``)

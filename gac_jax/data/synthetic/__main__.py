@@ -177,6 +177,14 @@ def build_parser() -> argparse.ArgumentParser:
         "pattern, window tint and tyre shade (domain randomization of the cars; default 0)",
     )
     p.add_argument(
+        "--large-vehicles",
+        type=float,
+        default=None,
+        metavar="SHARE",
+        help="frames only: share of frames (0-1) with 1-3 vans and trucks among the road users, "
+        "labelled Van / Truck (default 0)",
+    )
+    p.add_argument(
         "--overwrite", action="store_true", help="replace a dataset made with other arguments"
     )
     p.add_argument(
@@ -225,6 +233,8 @@ def _check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
         parser.error("--photo: for frames only")
     if args.randomize_cars is not None:
         parser.error("--randomize-cars: for frames only")
+    if args.large_vehicles is not None:
+        parser.error("--large-vehicles: for frames only")
 
 
 def _generate(args: argparse.Namespace, what: str, call):
@@ -302,6 +312,7 @@ def main(argv: list[str] | None = None) -> int:
             randomize=args.randomize or 0.0,
             photo=args.photo or 0.0,
             randomize_cars=args.randomize_cars or 0.0,
+            large_vehicles=args.large_vehicles or 0.0,
             workers=args.workers,
             overwrite=args.overwrite,
             progress=not args.quiet,

@@ -55,7 +55,7 @@ class Frame:
 
 def _streams(seed: int, index: int) -> list[np.random.Generator]:
     # (children are keyed by their position: a new stream leaves the earlier ones as they were)
-    children = np.random.SeedSequence([int(seed), int(index)]).spawn(7)
+    children = np.random.SeedSequence([int(seed), int(index)]).spawn(8)
     return [np.random.default_rng(c) for c in children]
 
 
@@ -75,6 +75,7 @@ def make_frame(
     randomize: float = 0.0,
     photo: float = 0.0,
     randomize_cars: float = 0.0,
+    large_vehicles: float = 0.0,
 ) -> Frame:
     """Samples and renders frame ``index`` of the dataset ``seed``.
 
@@ -90,9 +91,11 @@ def make_frame(
         photographs (:mod:`photo_textures`; 0 = none).
       randomize_cars: share of frames whose cars get random paint, glass and tyres
         (:func:`domain_randomization.randomize_cars`; 0 = none).
+      large_vehicles: share of frames with vans and trucks among the road users, labelled
+        ``Van`` / ``Truck`` (:mod:`vehicles`; 0 = none).
     """
     streams = _streams(seed, index)
-    rig_rng, scene_rng, camera_rng, lidar_rng, random_rng, photo_rng, car_rng = streams
+    rig_rng, scene_rng, camera_rng, lidar_rng, random_rng, photo_rng, car_rng, vehicle_rng = streams
     rig_index = rigs.choose_rig(rig_set, rig_rng)
     rig = rigs.cameras(rig_set)[rig_index]
     pose = rigs.sample_pose(rig_set, rig_index, rig_rng)
@@ -101,7 +104,9 @@ def make_frame(
         camera_height = pose[1] if camera_height is None else camera_height
     image_size = rigs.image_size(rig, image_size)
     calib = calibration.object_calibration(rig, image_size)
-    scene = sample_scene(scene_rng, calib.P2, image_size, counts, pitch, camera_height)
+    scene = sample_scene(
+        scene_rng, calib.P2, image_size, counts, pitch, camera_height, large_vehicles, vehicle_rng
+    )
     if randomize > 0.0:
         scene.background = domain_randomization.randomize_background(
             scene.background, random_rng, randomize

@@ -19,12 +19,13 @@ import dataclasses
 
 import numpy as np
 
-from gac_jax.data.synthetic import roadside, shapes
+from gac_jax.data.synthetic import roadside, shapes, vehicles
 from gac_jax.data.synthetic.road_path import RoadPath
 from gac_jax.data.synthetic.roadside import Footprint
 from gac_jax.geometry import box2d_from_corners, box3d_corners, rotation_y_matrix, wrap_angle
 
-# KITTI size statistics (mean, std) of (h, w, l) in metres.
+# KITTI size statistics (mean, std) of (h, w, l) in metres of the classes a frame's counts
+# name (vans and trucks: vehicles.SIZES).
 CLASS_SIZES = {
     "Car": ((1.53, 0.14), (1.63, 0.10), (3.88, 0.43)),
     "Pedestrian": ((1.76, 0.11), (0.66, 0.14), (0.84, 0.23)),
@@ -277,6 +278,19 @@ class SceneBuilder:
             for _ in range(int(rng.integers(0, 3))):
                 self._place("Car", FAR_RANGE)
 
+    def large_vehicles(self, rng: np.random.Generator, share: float) -> None:
+        """In a ``share`` of the calls, 1-3 vans and trucks (:mod:`vehicles`) parked or in the
+        lanes like cars, wherever there is room; drawn from ``rng`` alone, so the rest of the
+        scene is the same with or without them."""
+        if share <= 0.0 or rng.random() >= share:
+            return
+        scene_rng, self.rng = self.rng, rng
+        try:
+            for _ in range(int(rng.integers(vehicles.COUNT[0], vehicles.COUNT[1] + 1))):
+                self._place("Van" if rng.random() < vehicles.VAN_SHARE else "Truck", DEPTH_RANGE)
+        finally:
+            self.rng = scene_rng
+
     def _parked_row(self, side: int) -> None:
         """A row of cars parked nose to tail along the parking lane on ``side``, from beside
         the camera (cut by the image border) to far ahead, with a few empty spaces."""
@@ -300,7 +314,7 @@ class SceneBuilder:
         """Adds a road user at road position ``(t, s)`` and heading ``psi`` if it is free,
         within ``depth_range`` and at least partly in the image."""
         foot = Footprint(t, s, dims[2] / 2, dims[1] / 2, psi)
-        margin = 0.3 if cls == "Car" else 0.15
+        margin = 0.15 if cls in ("Pedestrian", "Cyclist") else 0.3
         if any(foot.overlaps(o, margin) for o in self.obstacles):
             return False
         loc = np.round(self.road_rotation @ np.array([t - self.lateral, support, s]), 2)
@@ -368,12 +382,13 @@ class SceneBuilder:
 
     def sample_dimensions(self, cls) -> np.ndarray:
         """(3,) ``h, w, l`` of a road user of class ``cls`` (KITTI's statistics, cm steps)."""
-        return np.round(np.array([_normal(self.rng, m, sd) for m, sd in CLASS_SIZES[cls]]), 2)
+        sizes = vehicles.SIZES[cls] if cls in vehicles.SIZES else CLASS_SIZES[cls]
+        return np.round(np.array([_normal(self.rng, m, sd) for m, sd in sizes]), 2)
 
     def _place(self, cls, depth_range, tries: int = 30):
         for _ in range(tries):
             dims = self.sample_dimensions(cls)
-            t, s, psi, support, _ = self.propose(cls)
+            t, s, psi, support, _ = self.propose("Car" if cls in vehicles.SIZES else cls)
             if self._try_at(cls, dims, t, s, psi, support, depth_range):
                 return
 
@@ -387,6 +402,9 @@ class SceneBuilder:
         if cls == "Car":
             paint = PAINTS[rng.choice(len(PAINTS), p=PAINT_WEIGHTS)] * rng.uniform(0.9, 1.1)
             return shapes.car_parts(h, w, l, np.clip(paint, 0, 1), rng)
+        if cls in vehicles.SIZES:
+            paint = PAINTS[rng.choice(len(PAINTS), p=PAINT_WEIGHTS)] * rng.uniform(0.9, 1.1)
+            return vehicles.parts(cls, dims, np.clip(paint, 0, 1), rng)
         if cls == "Pedestrian":
             return shapes.pedestrian_parts(h, w, l, rng)
         return shapes.cyclist_parts(h, w, l, rng)
@@ -425,6 +443,8 @@ def sample_scene(
     counts: dict[str, tuple[int, int]] | None = None,
     pitch: float | None = None,
     camera_height: float | None = None,
+    large_vehicles: float = 0.0,
+    vehicle_rng: np.random.Generator | None = None,
 ) -> Scene:
     """Samples a random driving scene seen by the camera ``P2`` (images of size (H, W)).
 
@@ -433,6 +453,8 @@ def sample_scene(
         default is :data:`DEFAULT_COUNTS`. A car that finds no free spot is skipped.
       pitch, camera_height: fix the camera pose (radians, metres) instead of
         sampling it (pitch ~ N(0, 0.5 deg) clipped to +-1 deg, height 1.65 +- 0.05 m).
+      large_vehicles: probability that vans and trucks join the road users, drawn from
+        ``vehicle_rng`` (:meth:`SceneBuilder.large_vehicles`; 0 = never).
     """
     b = SceneBuilder(
         rng, P2, image_size, DEFAULT_COUNTS if counts is None else counts, pitch, camera_height
@@ -440,6 +462,8 @@ def sample_scene(
     road = b.road()
     b.roadside()
     b.road_users()
+    if large_vehicles > 0.0:
+        b.large_vehicles(vehicle_rng, large_vehicles)
     return Scene(
         camera_height=float(b.h),
         pitch=float(b.pitch),

@@ -317,18 +317,24 @@ def car_parts(
         x0 = c_front - 0.06 * l
         mirrors.append(box(x0, x0 + 0.05 * l, belt - 0.14, belt - 0.03, z0, z1, paint))
 
+    return [body, cabin, *mirrors, *wheels(x_wheels, r, w, tyre_w, rng)]
+
+
+def wheels(x_axles, r: float, w: float, tyre_w: float, rng: np.random.Generator) -> list[Solid]:
+    """Tyres of radius ``r`` with hub caps (12-sided prisms) at the axles' x, on both sides of
+    a ``w`` wide body (object frame); one draw from ``rng`` (the hubs' shade)."""
     tyre = np.array([0.05, 0.05, 0.055])
     rim = np.array([0.35, 0.35, 0.36]) * rng.uniform(0.6, 1.2)
-    wheels = []
-    for x in x_wheels:
+    out = []
+    for x in x_axles:
         for z0, z1 in ((-w / 2, -w / 2 + tyre_w), (w / 2 - tyre_w, w / 2)):
-            polygon12 = polygon(12, r, (x, -r), np.pi / 12)
-            polygon12[:, 1] = np.minimum(polygon12[:, 1], 0.0)  # (no part below the ground)
-            wheel = prism_z(polygon12, z0, z1, tyre, cap_colors=tyre)
+            outline = polygon(12, r, (x, -r), np.pi / 12)
+            outline[:, 1] = np.minimum(outline[:, 1], 0.0)  # (no part below the ground)
+            wheel = prism_z(outline, z0, z1, tyre, cap_colors=tyre)
             wheel.colors[-2:] = rim  # hub caps
             wheel.materials[-2:] = ROUGH
-            wheels.append(wheel)
-    return [body, cabin, *mirrors, *wheels]
+            out.append(wheel)
+    return out
 
 
 def pedestrian_parts(h: float, w: float, l: float, rng: np.random.Generator) -> list[Solid]:

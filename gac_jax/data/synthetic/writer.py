@@ -103,6 +103,7 @@ class DatasetSpec(SceneArguments):
     randomize: float = 0.0  # share of frames with a randomized background (domain_randomization)
     photo: float = 0.0  # share of frames with photo textures (photo_textures)
     randomize_cars: float = 0.0  # share of frames with randomized cars (domain_randomization)
+    large_vehicles: float = 0.0  # share of frames with vans and trucks (vehicles)
 
     def validate(self) -> None:
         """Raises ValueError with a clear message for unusable arguments."""
@@ -121,6 +122,8 @@ class DatasetSpec(SceneArguments):
             raise ValueError(f"photo must be a share in [0, 1], got {self.photo}")
         if not 0.0 <= self.randomize_cars <= 1.0:
             raise ValueError(f"randomize_cars must be a share in [0, 1], got {self.randomize_cars}")
+        if not 0.0 <= self.large_vehicles <= 1.0:
+            raise ValueError(f"large_vehicles must be a share in [0, 1], got {self.large_vehicles}")
 
     def to_json(self) -> dict:
         return {
@@ -137,6 +140,7 @@ class DatasetSpec(SceneArguments):
             **({"randomize": float(self.randomize)} if self.randomize > 0 else {}),
             **({"photo": float(self.photo)} if self.photo > 0 else {}),
             **({"randomize_cars": float(self.randomize_cars)} if self.randomize_cars > 0 else {}),
+            **({"large_vehicles": float(self.large_vehicles)} if self.large_vehicles > 0 else {}),
         }
 
     def splits(self) -> dict[str, list[int]]:
@@ -265,6 +269,7 @@ def _write_frame(job: _Job, index: int) -> float:
         randomize=spec.randomize,
         photo=spec.photo,
         randomize_cars=spec.randomize_cars,
+        large_vehicles=spec.large_vehicles,
     )
     paths = frame_paths(Path(job.root), index, frame.rig, job.split_of[index], spec.rigs)
     write_calib(paths["calib"], frame.calib)
@@ -318,6 +323,7 @@ def generate_dataset(
     randomize: float = 0.0,
     photo: float = 0.0,
     randomize_cars: float = 0.0,
+    large_vehicles: float = 0.0,
     workers: int | None = None,
     overwrite: bool = False,
     progress: bool = False,
@@ -349,6 +355,8 @@ def generate_dataset(
         photographs (:mod:`gac_jax.data.synthetic.photo_textures`; 0 = none, the default).
       randomize_cars: share of frames whose cars get random paint, glass and tyres
         (:func:`gac_jax.data.synthetic.domain_randomization.randomize_cars`; 0 = none).
+      large_vehicles: share of frames with vans and trucks among the road users, labelled
+        ``Van`` / ``Truck`` (:mod:`gac_jax.data.synthetic.vehicles`; 0 = none).
       workers: processes (default ``os.cpu_count()``; 1 = in this process).
       overwrite: replace a dataset made with other arguments instead of failing.
       progress: show a progress bar.
@@ -377,6 +385,7 @@ def generate_dataset(
         randomize=float(randomize),
         photo=float(photo),
         randomize_cars=float(randomize_cars),
+        large_vehicles=float(large_vehicles),
     )
     spec.validate()
     root = Path(out_dir)
