@@ -1,6 +1,6 @@
 """Train a GAC model.
 
-    python train.py --task detect3d      # default: generated dataset, 23-40 min on 2 CPU cores
+    python train.py --task detect3d      # default: generated dataset, 26-45 min on 2 CPU cores
     python train.py --task detect3d --config configs/detect3d_kitti.py --workdir runs/gac
     python train.py --task depth
     python train.py --task detect3d train.num_steps=200 data.batch_size=4   # overrides

@@ -16,14 +16,15 @@ out into split ``val_heldout``, evaluate with ``evaluate.py --workdir W --split 
 ``kittirig`` (with ``multirig``): train on the KITTI-like rig's frames only (cross-rig).
 ``fixedplane``: ignore the frames' ``planes/`` files (GAC, the anchor filter and the export
 get the level plane 1.65 m below the camera, as without files). ``long``: 3,000 generated
-frames (2,700 train / 300 val) for the same 1,750 steps, at about 11 more minutes of
-generation; on generated val and on the real KITTI frames it was no better than the default
-(docs/results.md "Real KITTI frames"; measured before the randomized car paint joined the
-default). ``steps2x``: twice the steps (3,500) on the default's frames, about 40 minutes of
-training on 2 cores instead of 20: on generated val and on the real KITTI frames it transfers
-better than the default (docs/results.md "Real KITTI frames"). The default's frames give 70 %
-of the cars of half the frames a random paint (``data.synthetic.randomize_cars``); ``tiny`` and
-``multirig`` leave it out.
+frames (2,700 train / 300 val) for 1,750 steps (the earlier default's), at about 11 more minutes
+of generation; on generated val and on the real KITTI frames it was no better than the default
+of then (docs/results.md "Real KITTI frames"; measured before the randomized car paint joined
+the default). ``steps2x``: 3,500 steps on the default's frames (twice the earlier default's
+1,750), about 40 minutes of training on 2 cores instead of 24: on generated val and on the real
+KITTI frames it transferred better than 1,750 steps (docs/results.md "Real KITTI frames"). The
+default trains 2,100 steps, the most that fit the first run's 30 minutes. The default's frames
+give 70 % of the cars of half the frames a random paint (``data.synthetic.randomize_cars``);
+``tiny`` and ``multirig`` leave it out.
 """
 
 from __future__ import annotations
