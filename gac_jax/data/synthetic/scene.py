@@ -399,12 +399,12 @@ class SceneBuilder:
         """The part models of a road user of size ``dims`` (h, w, l) in its box frame."""
         rng = self.rng
         h, w, l = dims
-        if cls == "Car":
+        if cls == "Car" or cls in vehicles.SIZES:
             paint = PAINTS[rng.choice(len(PAINTS), p=PAINT_WEIGHTS)] * rng.uniform(0.9, 1.1)
-            return shapes.car_parts(h, w, l, np.clip(paint, 0, 1), rng)
-        if cls in vehicles.SIZES:
-            paint = PAINTS[rng.choice(len(PAINTS), p=PAINT_WEIGHTS)] * rng.uniform(0.9, 1.1)
-            return vehicles.parts(cls, dims, np.clip(paint, 0, 1), rng)
+            paint = np.clip(paint, 0, 1)
+            if cls == "Car":
+                return shapes.car_parts(h, w, l, paint, rng)
+            return vehicles.parts(cls, dims, paint, rng)
         if cls == "Pedestrian":
             return shapes.pedestrian_parts(h, w, l, rng)
         return shapes.cyclist_parts(h, w, l, rng)
