@@ -18,6 +18,7 @@ import dataclasses
 import numpy as np
 
 from gac_jax.data.synthetic import shapes
+from gac_jax.geometry import rotation_y_matrix
 
 # Sizes (mean, std) of (h, w, l) in metres: the means of KITTI's training labels, spreads about
 # theirs (a truck's length narrowed to keep it between 5 and 15 m after the 2.5-sigma clip).
@@ -120,8 +121,10 @@ def truck_parts(h: float, w: float, l: float, paint, rng: np.random.Generator) -
     if rng.random() < 0.25:  # a tank: a horizontal cylinder (12-sided prism along x)
         radius = min(0.5 * (floor + h), 0.47 * w)
         outline = shapes.polygon(12, radius, (0.0, floor - radius), np.pi / 12)
-        # (prism_z extrudes the (lateral, y) outline along z; turned, it runs along x)
-        cargo = _along_x(shapes.prism_z(outline, -l / 2 + 0.1, x_front, cargo_colour))
+        # (prism_z extrudes the (lateral, y) outline along z; a quarter turn about y lays it
+        # along x, and the outline is symmetric about the lateral centre)
+        tank = shapes.prism_z(outline, -l / 2 + 0.1, x_front, cargo_colour)
+        cargo = tank.transformed(rotation_y_matrix(np.pi / 2), np.zeros(3))
     else:
         cargo = shapes.box(-l / 2, x_front, -h, floor, -w / 2, w / 2, cargo_colour)
         cargo.materials[shapes.BACK] = shapes.TAILLIGHTS
@@ -131,18 +134,6 @@ def truck_parts(h: float, w: float, l: float, paint, rng: np.random.Generator) -
     if l > 8.0:
         axles.append(axles[-1] + 2.0 * r + 0.15)
     return [body, cab, cargo, chassis, *shapes.wheels(axles, r, w, 0.12 * w, rng)]
-
-
-def _along_x(solid: shapes.Solid) -> shapes.Solid:
-    """A solid built with its axis along z (a ``prism_z`` of a (z, y) outline) turned so that
-    the axis runs along x: ``(x, y, z) -> (z, y, x)``."""
-    swap = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
-    return dataclasses.replace(
-        solid,
-        normals=solid.normals @ swap.T,
-        vertices=solid.vertices @ swap.T,
-        frame=np.concatenate([swap @ solid.frame[:, :3], solid.frame[:, 3:]], axis=1),
-    )
 
 
 def parts(cls: str, dims, paint, rng: np.random.Generator) -> list:
