@@ -28,7 +28,8 @@ def synthetic_config() -> ml_collections.ConfigDict:
     ``randomize_cars``: share of frames whose cars get random paint, glass and tyres
     (:func:`gac_jax.data.synthetic.domain_randomization.randomize_cars`; the same);
     ``large_vehicles``: share of frames with vans and trucks, labelled ``Van`` / ``Truck``
-    (:mod:`gac_jax.data.synthetic.vehicles`; the same);
+    (:mod:`gac_jax.data.synthetic.vehicles`; the same); ``gardens``: probability that an
+    urban roadside has front gardens (:mod:`gac_jax.data.synthetic.gardens`; the same);
     ``workers``: generator processes (0: one per core; the content does not depend on them).
     Both configs share it, so the detector and the depth network train on one generated
     dataset.
@@ -36,7 +37,8 @@ def synthetic_config() -> ml_collections.ConfigDict:
     return ml_collections.ConfigDict(
         dict(
             num_frames=1000, seed=0, height=375, width=1242, val_fraction=0.5, rigs="kitti",
-            randomize=0.0, photo=0.0, randomize_cars=0.0, large_vehicles=0.0, workers=0,
+            randomize=0.0, photo=0.0, randomize_cars=0.0, large_vehicles=0.0, gardens=0.0,
+            workers=0,
         )
     )  # fmt: skip
 
@@ -60,6 +62,8 @@ def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
     name += f"_dc{cars:g}" if cars > 0 else ""
     large = float(s.get("large_vehicles", 0.0))
     name += f"_lv{large:g}" if large > 0 else ""
+    garden = float(s.get("gardens", 0.0))
+    name += f"_g{garden:g}" if garden > 0 else ""
     rig_set = s.get("rigs", "kitti")
     return default_cache_dir() / (name if rig_set == "kitti" else f"{name}_{rig_set}rig")
 
@@ -102,6 +106,7 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
                 photo=float(s.get("photo", 0.0)),
                 randomize_cars=float(s.get("randomize_cars", 0.0)),
                 large_vehicles=float(s.get("large_vehicles", 0.0)),
+                gardens=float(s.get("gardens", 0.0)),
                 workers=s.get("workers") or None,  # 0 / absent: one per core
                 progress=True,  # what, where and about how long; then a bar or a line per ~10 %
                 should_stop=stopping.stop_requested,  # a stop signal stops it at once

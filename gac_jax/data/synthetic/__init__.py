@@ -27,7 +27,8 @@ Modules:
 * ``rigs`` - rig sets: KITTI's (default) or eight vehicles with ground planes (``--rigs multi``).
 * ``shapes`` - convex solids; part models of cars, pedestrians, cyclists.
   ``vehicles`` - vans and trucks (``--large-vehicles``).
-* ``scene`` / ``roadside`` - sampling a scene (road, roadside, road users, light).
+* ``scene`` / ``roadside`` - sampling a scene (road, roadside, road users, light);
+  ``gardens`` - urban buildings set back behind front gardens (``--gardens``).
 * ``render`` - ray-casting z-buffer rasteriser; ``materials`` - surface appearance.
 * ``domain_randomization`` - random colours and patterns on the background (``--randomize``)
   and on the cars (``--randomize-cars``);

@@ -185,6 +185,14 @@ def build_parser() -> argparse.ArgumentParser:
         "labelled Van / Truck (default 0)",
     )
     p.add_argument(
+        "--gardens",
+        type=float,
+        default=None,
+        metavar="SHARE",
+        help="frames only: probability (0-1) that an urban roadside has front gardens, its "
+        "buildings 3-14 m behind lawns, hedges and trees (default 0)",
+    )
+    p.add_argument(
         "--overwrite", action="store_true", help="replace a dataset made with other arguments"
     )
     p.add_argument(
@@ -235,6 +243,8 @@ def _check_mode(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
         parser.error("--randomize-cars: for frames only")
     if args.large_vehicles is not None:
         parser.error("--large-vehicles: for frames only")
+    if args.gardens is not None:
+        parser.error("--gardens: for frames only")
 
 
 def _generate(args: argparse.Namespace, what: str, call):
@@ -313,6 +323,7 @@ def main(argv: list[str] | None = None) -> int:
             photo=args.photo or 0.0,
             randomize_cars=args.randomize_cars or 0.0,
             large_vehicles=args.large_vehicles or 0.0,
+            gardens=args.gardens or 0.0,
             workers=args.workers,
             overwrite=args.overwrite,
             progress=not args.quiet,

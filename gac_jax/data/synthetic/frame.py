@@ -55,7 +55,7 @@ class Frame:
 
 def _streams(seed: int, index: int) -> list[np.random.Generator]:
     # (children are keyed by their position: a new stream leaves the earlier ones as they were)
-    children = np.random.SeedSequence([int(seed), int(index)]).spawn(8)
+    children = np.random.SeedSequence([int(seed), int(index)]).spawn(9)
     return [np.random.default_rng(c) for c in children]
 
 
@@ -76,6 +76,7 @@ def make_frame(
     photo: float = 0.0,
     randomize_cars: float = 0.0,
     large_vehicles: float = 0.0,
+    gardens: float = 0.0,
 ) -> Frame:
     """Samples and renders frame ``index`` of the dataset ``seed``.
 
@@ -93,9 +94,14 @@ def make_frame(
         (:func:`domain_randomization.randomize_cars`; 0 = none).
       large_vehicles: share of frames with vans and trucks among the road users, labelled
         ``Van`` / ``Truck`` (:mod:`vehicles`; 0 = none).
+      gardens: probability that an urban roadside has front gardens, its buildings set back
+        3-14 m behind lawns, hedges and trees (:mod:`gardens`; 0 = none).
     """
     streams = _streams(seed, index)
-    rig_rng, scene_rng, camera_rng, lidar_rng, random_rng, photo_rng, car_rng, vehicle_rng = streams
+    rig_rng, scene_rng, camera_rng, lidar_rng, random_rng, photo_rng, car_rng, vehicle_rng = (
+        streams[:8]
+    )
+    garden_rng = streams[8]
     rig_index = rigs.choose_rig(rig_set, rig_rng)
     rig = rigs.cameras(rig_set)[rig_index]
     pose = rigs.sample_pose(rig_set, rig_index, rig_rng)
@@ -105,7 +111,16 @@ def make_frame(
     image_size = rigs.image_size(rig, image_size)
     calib = calibration.object_calibration(rig, image_size)
     scene = sample_scene(
-        scene_rng, calib.P2, image_size, counts, pitch, camera_height, large_vehicles, vehicle_rng
+        scene_rng,
+        calib.P2,
+        image_size,
+        counts,
+        pitch,
+        camera_height,
+        large_vehicles,
+        vehicle_rng,
+        gardens,
+        garden_rng,
     )
     if randomize > 0.0:
         scene.background = domain_randomization.randomize_background(

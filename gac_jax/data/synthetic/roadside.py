@@ -78,9 +78,10 @@ def build(b) -> None:
             colors[shapes.TOP], mats[shapes.TOP] = paving, shapes.PAVING
             for s0, s1 in spans(b, -20.0, b.road_end):
                 b.add_road_solid(shapes.box(t0, t1, h - kerb, h + 0.3, s0, s1, colors, mats))
-            _buildings(b, side, edge + side * width)
+            # (front gardens, :mod:`gardens`, set the buildings back by their depth)
+            _buildings(b, side, edge + side * (width + b.garden_depths.get(side, 0.0)))
             if rng.random() < 0.5:
-                _trees(b, side, edge + side * 0.9, h - kerb, spacing=(8.0, 16.0))
+                trees(b, side, edge + side * 0.9, h - kerb, spacing=(8.0, 16.0))
             _poles(b, side, edge + side * 0.5, h - kerb)
             _clutter(b, side, edge + side * (width - 0.5), h - kerb)
         else:
@@ -94,7 +95,7 @@ def build(b) -> None:
                     b.obstacles.append(
                         Footprint(0.5 * (t0 + t1), (s0 + s1) / 2, (s1 - s0) / 2, 0.2, 0.0)
                     )
-            _trees(b, side, edge + side * rng.uniform(2.0, 5.0), h, spacing=(5.0, 12.0))
+            trees(b, side, edge + side * rng.uniform(2.0, 5.0), h, spacing=(5.0, 12.0))
             _poles(b, side, edge + side * 1.2, h)
             _hedges(b, side, edge + side * rng.uniform(1.5, 3.0), h)
     _skyline(
@@ -122,7 +123,7 @@ def spans(b, s0: float, s1: float) -> list[tuple[float, float]]:
     return pieces
 
 
-def _in_cross(b, s0: float, s1: float) -> bool:
+def in_cross(b, s0: float, s1: float) -> bool:
     return b.cross is not None and s1 > b.cross[0] - 1.0 and s0 < b.cross[1] + 1.0
 
 
@@ -152,13 +153,15 @@ def _buildings(b, side, front_t):
         mats = np.full(6, shapes.FACADE)
         mats[shapes.TOP] = shapes.FLAT
         solid = shapes.box(t0, t1, h - height, h + 0.5, s, s + width, plaster, mats, params)
-        if not _in_cross(b, s, s + width):
+        if not in_cross(b, s, s + width):
             b.add_road_solid(solid)
         s += width + (0.0 if rng.random() < 0.6 else rng.uniform(2.0, 10.0))
 
 
-def _trees(b, side, t, ground_y, spacing):
-    rng = b.rng
+def trees(b, side, t, ground_y, spacing, rng: np.random.Generator | None = None):
+    """A row of trees at lateral ``t`` standing on ``ground_y``, ``spacing`` (m) apart, drawn
+    from ``rng`` (default: the scene's)."""
+    rng = b.rng if rng is None else rng
     s = rng.uniform(-5.0, 10.0)
     while s < b.road_end - 20:
         tt = t + side * rng.uniform(0.0, 0.4)
@@ -170,7 +173,7 @@ def _trees(b, side, t, ground_y, spacing):
         bark = np.array([0.3, 0.22, 0.15]) * rng.uniform(0.6, 1.2)
         leaf = np.array([0.18, 0.32, 0.12]) * rng.uniform(0.6, 1.4, 3)
         top = ground_y - trunk_h - crown_h
-        if not _in_cross(b, s - radius, s + radius):
+        if not in_cross(b, s - radius, s + radius):
             b.add_road_solid(
                 shapes.box(
                     tt - 0.15, tt + 0.15, top + 0.5 * crown_h, ground_y, s - 0.15, s + 0.15, bark
@@ -195,7 +198,7 @@ def _poles(b, side, t, ground_y):
     s = rng.uniform(0.0, 30.0)
     while s < b.road_end - 20:
         grey = np.array([0.5, 0.5, 0.52]) * rng.uniform(0.6, 1.2)
-        keep = not _in_cross(b, s - 0.5, s + 0.5)  # (the random draws stay the same)
+        keep = not in_cross(b, s - 0.5, s + 0.5)  # (the random draws stay the same)
         add = b.add_road_solid if keep else lambda solid: None
         if rng.random() < 0.3:  # traffic sign
             top = ground_y - rng.uniform(2.2, 2.8)
@@ -225,7 +228,7 @@ def _clutter(b, side, t, ground_y):
     while s < CLUTTER_END:
         kind = rng.choice(4, p=[0.3, 0.3, 0.2, 0.2])
         tt = t + side * rng.uniform(-0.2, 0.3)
-        if _in_cross(b, s - 2.0, s + 2.0):
+        if in_cross(b, s - 2.0, s + 2.0):
             kind = -1
         if kind == 0:  # wheelie bins in a row
             for k in range(int(rng.integers(1, 4))):
@@ -302,7 +305,7 @@ def _hedges(b, side, t, ground_y):
         hh, depth = rng.uniform(0.8, 2.5), rng.uniform(0.6, 1.5)
         leaf = np.array([0.15, 0.27, 0.1]) * rng.uniform(0.6, 1.4, 3)
         t0, t1 = sorted((t, t + side * depth))
-        if not _in_cross(b, s, s + length):
+        if not in_cross(b, s, s + length):
             b.add_road_solid(
                 shapes.box(t0, t1, ground_y - hh, ground_y, s, s + length, leaf, shapes.FOLIAGE)
             )

@@ -19,7 +19,7 @@ import dataclasses
 
 import numpy as np
 
-from gac_jax.data.synthetic import roadside, shapes, vehicles
+from gac_jax.data.synthetic import gardens, roadside, shapes, vehicles
 from gac_jax.data.synthetic.road_path import RoadPath
 from gac_jax.data.synthetic.roadside import Footprint
 from gac_jax.geometry import box2d_from_corners, box3d_corners, rotation_y_matrix, wrap_angle
@@ -179,6 +179,7 @@ class SceneBuilder:
         self.force_parking = False  # a parking lane on the right
         self.cross: tuple[float, float] | None = None  # a cross street (s0, s1)
         self.piece_length: float | None = None  # long kerbs in pieces (a curved road)
+        self.garden_depths: dict[int, float] = {}  # side -> front gardens' depth (gardens.plan)
 
     # ----------------------------------------------------------------- road
     def road(self):
@@ -445,6 +446,8 @@ def sample_scene(
     camera_height: float | None = None,
     large_vehicles: float = 0.0,
     vehicle_rng: np.random.Generator | None = None,
+    gardens_share: float = 0.0,
+    garden_rng: np.random.Generator | None = None,
 ) -> Scene:
     """Samples a random driving scene seen by the camera ``P2`` (images of size (H, W)).
 
@@ -455,12 +458,18 @@ def sample_scene(
         sampling it (pitch ~ N(0, 0.5 deg) clipped to +-1 deg, height 1.65 +- 0.05 m).
       large_vehicles: probability that vans and trucks join the road users, drawn from
         ``vehicle_rng`` (:meth:`SceneBuilder.large_vehicles`; 0 = never).
+      gardens_share: probability that an urban roadside has front gardens, drawn from
+        ``garden_rng`` (:mod:`gardens`; 0 = never).
     """
     b = SceneBuilder(
         rng, P2, image_size, DEFAULT_COUNTS if counts is None else counts, pitch, camera_height
     )
     road = b.road()
+    if gardens_share > 0.0:
+        b.garden_depths = gardens.plan(garden_rng, gardens_share, b.sides)
     b.roadside()
+    if any(b.garden_depths.values()):
+        gardens.build(b, garden_rng)
     b.road_users()
     if large_vehicles > 0.0:
         b.large_vehicles(vehicle_rng, large_vehicles)

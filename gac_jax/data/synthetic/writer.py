@@ -104,6 +104,7 @@ class DatasetSpec(SceneArguments):
     photo: float = 0.0  # share of frames with photo textures (photo_textures)
     randomize_cars: float = 0.0  # share of frames with randomized cars (domain_randomization)
     large_vehicles: float = 0.0  # share of frames with vans and trucks (vehicles)
+    gardens: float = 0.0  # probability of front gardens on an urban roadside (gardens)
 
     def validate(self) -> None:
         """Raises ValueError with a clear message for unusable arguments."""
@@ -124,6 +125,8 @@ class DatasetSpec(SceneArguments):
             raise ValueError(f"randomize_cars must be a share in [0, 1], got {self.randomize_cars}")
         if not 0.0 <= self.large_vehicles <= 1.0:
             raise ValueError(f"large_vehicles must be a share in [0, 1], got {self.large_vehicles}")
+        if not 0.0 <= self.gardens <= 1.0:
+            raise ValueError(f"gardens must be a share in [0, 1], got {self.gardens}")
 
     def to_json(self) -> dict:
         return {
@@ -141,6 +144,7 @@ class DatasetSpec(SceneArguments):
             **({"photo": float(self.photo)} if self.photo > 0 else {}),
             **({"randomize_cars": float(self.randomize_cars)} if self.randomize_cars > 0 else {}),
             **({"large_vehicles": float(self.large_vehicles)} if self.large_vehicles > 0 else {}),
+            **({"gardens": float(self.gardens)} if self.gardens > 0 else {}),
         }
 
     def splits(self) -> dict[str, list[int]]:
@@ -270,6 +274,7 @@ def _write_frame(job: _Job, index: int) -> float:
         photo=spec.photo,
         randomize_cars=spec.randomize_cars,
         large_vehicles=spec.large_vehicles,
+        gardens=spec.gardens,
     )
     paths = frame_paths(Path(job.root), index, frame.rig, job.split_of[index], spec.rigs)
     write_calib(paths["calib"], frame.calib)
@@ -324,6 +329,7 @@ def generate_dataset(
     photo: float = 0.0,
     randomize_cars: float = 0.0,
     large_vehicles: float = 0.0,
+    gardens: float = 0.0,
     workers: int | None = None,
     overwrite: bool = False,
     progress: bool = False,
@@ -357,6 +363,8 @@ def generate_dataset(
         (:func:`gac_jax.data.synthetic.domain_randomization.randomize_cars`; 0 = none).
       large_vehicles: share of frames with vans and trucks among the road users, labelled
         ``Van`` / ``Truck`` (:mod:`gac_jax.data.synthetic.vehicles`; 0 = none).
+      gardens: probability that an urban roadside has front gardens, its buildings set back
+        behind lawns, hedges and trees (:mod:`gac_jax.data.synthetic.gardens`; 0 = none).
       workers: processes (default ``os.cpu_count()``; 1 = in this process).
       overwrite: replace a dataset made with other arguments instead of failing.
       progress: show a progress bar.
@@ -386,6 +394,7 @@ def generate_dataset(
         photo=float(photo),
         randomize_cars=float(randomize_cars),
         large_vehicles=float(large_vehicles),
+        gardens=float(gardens),
     )
     spec.validate()
     root = Path(out_dir)
