@@ -87,6 +87,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.model.intrinsics_mode = "correct"  # 'correct' | 'reference' (K scaled twice)
     c.model.decoder_features = ()  # () = (4w, w, w)
     c.model.prior_max_frames = 2000  # training GT maps averaged for prior_mean (0 = all)
+    # the residual's base: 'mean' (prior_mean, the reference) | 'ground_plane' (the road's
+    # depth at every pixel through the frame's P and ground plane, prior_max_depth above it)
+    c.model.output_prior = "mean"
+    c.model.prior_max_depth = 75.0
     c.model.gac = ml_collections.ConfigDict(
         dict(baseline=0.54, camera_height=1.65, object_height=1.535, offset_formula="paper")
     )

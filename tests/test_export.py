@@ -133,6 +133,7 @@ DEPTH_VARIANTS = {
     "gac": ("depth_default.py:tiny",),
     "base": ("depth_default.py:tiny,base",),
     "reference_intrinsics": ("depth_default.py:tiny", "model.intrinsics_mode=reference"),
+    "ground_plane_prior": ("depth_default.py:tiny", "model.output_prior=ground_plane"),
 }
 
 

@@ -67,6 +67,8 @@ def build_model(config: ml_collections.ConfigDict, prior_mean: float) -> DepthUN
         intrinsics_mode=m.intrinsics_mode,
         decoder_features=tuple(m.decoder_features) if m.decoder_features else None,
         prior_mean=float(prior_mean),
+        output_prior=m.get("output_prior", "mean"),
+        prior_max_depth=float(m.get("prior_max_depth", 75.0)),
         baseline=m.gac.baseline,
         camera_height=m.gac.camera_height,
         object_height=m.gac.object_height,

@@ -18,8 +18,16 @@ of the coarser map -> zero-pad (or crop) to the skip size -> concatenate ``[skip
 (``decoder_features``) default to ``(4w, w, w)`` = (256, 64, 64) for base width ``w = 64``.
 
 Heads ``out_scale_8`` / ``out_scale_4`` / ``out_scale_1`` (conv 3x3 -> 1) predict a
-log-depth *residual* ``f``; ``log_depth = prior_mean + f`` and ``depth = exp(log_depth)``
-(``prior_mean``: the global mean log-depth of the training GT, :func:`mean_log_depth`).
+log-depth *residual* ``f``; ``log_depth = prior + f`` and ``depth = exp(log_depth)``. The prior
+(``output_prior``):
+
+* ``'mean'`` (default, the reference): ``prior_mean``, the global mean log-depth of the
+  training GT (:func:`mean_log_depth`), one number;
+* ``'ground_plane'``: at every pixel of the output scale the log depth of the road seen there
+  (:func:`ground_log_depth`: the frame's ground plane, or the level plane ``camera_height``
+  below the camera, through its ``P``), ``prior_max_depth`` at and above the horizon: the
+  per-pixel prior the reference's precompute builds before reducing it to one number. The
+  residual is then 0 on the road however far it is, and the network learns what stands on it.
 
 Calibration of the GAC stages (``intrinsics_mode``):
 
@@ -46,7 +54,10 @@ from gac_jax.models.ground_aware_conv import (
     DEFAULT_CAMERA_HEIGHT,
     DEFAULT_OBJECT_HEIGHT,
     GroundAwareConv,
+    feature_projection,
+    frame_planes,
 )
+from gac_jax.models.ground_plane import ground_maps
 from gac_jax.models.initializers import torch_conv_bias_init, torch_conv_kernel_init
 from gac_jax.models.resnet import (
     ResNet,
@@ -56,6 +67,7 @@ from gac_jax.models.resnet import (
 )
 
 INTRINSICS_MODES = ("correct", "reference")
+OUTPUT_PRIORS = ("mean", "ground_plane")
 DECODER_CONVS = ("plain", "deformable")
 OUTPUT_SCALES = ("scale_1", "scale_4", "scale_8")
 # decoder stage -> (skip layer, output stride, uses GAC when use_gac)
@@ -309,6 +321,8 @@ class DepthUNet(nn.Module):
     intrinsics_mode: str = "correct"
     decoder_features: Sequence[int] | None = None
     prior_mean: float = 0.0
+    output_prior: str = "mean"
+    prior_max_depth: float = 75.0
     baseline: float = DEFAULT_BASELINE
     camera_height: float = DEFAULT_CAMERA_HEIGHT
     object_height: float = DEFAULT_OBJECT_HEIGHT
@@ -325,6 +339,10 @@ class DepthUNet(nn.Module):
         B, H, W, _ = images.shape
         if P.shape != (B, 3, 4):
             raise ValueError(f"P must have shape (B,3,4) = {(B, 3, 4)}, got {P.shape}")
+        if self.output_prior not in OUTPUT_PRIORS:
+            raise ValueError(
+                f"output_prior must be one of {OUTPUT_PRIORS}, got {self.output_prior!r}"
+            )
         if self.intrinsics_mode not in INTRINSICS_MODES:
             raise ValueError(
                 f"intrinsics_mode must be one of {INTRINSICS_MODES}, got {self.intrinsics_mode!r}"
@@ -375,7 +393,14 @@ class DepthUNet(nn.Module):
                 f = head(decoded["up2"])
             else:
                 f = _conv(1, 3, heads[scale].shape[-1], dt, pdt, f"out_{scale}")(heads[scale])
-            log_depth[scale] = self.prior_mean + f[..., 0].astype(jnp.float32)
+            if self.output_prior == "ground_plane":
+                prior = ground_log_depth(
+                    P, plane, f.shape[1:3], H / f.shape[1], self.camera_height,
+                    self.prior_max_depth,
+                )  # fmt: skip
+            else:
+                prior = self.prior_mean
+            log_depth[scale] = prior + f[..., 0].astype(jnp.float32)
         out: dict[str, Any] = {
             "log_depth": log_depth,
             "depth": jnp.exp(log_depth["scale_1"]),
@@ -383,6 +408,35 @@ class DepthUNet(nn.Module):
         if offsets:
             out["gac_offsets"] = offsets
         return out
+
+
+def ground_log_depth(
+    P: jax.Array,
+    plane: jax.Array | None,
+    size: tuple[int, int],
+    stride: float,
+    camera_height: float = DEFAULT_CAMERA_HEIGHT,
+    max_depth: float = 75.0,
+) -> jax.Array:
+    """Log depth (m) of the road seen at every pixel of an (h, w) map of the input.
+
+    Args:
+      P: (B, 3, 4) projection of the network input (input pixels).
+      plane: (B, 4) ground planes (:mod:`gac_jax.models.ground_plane`), or None for the level
+        plane ``camera_height`` below the camera.
+      size: (h, w) of the map; stride: input pixels per map pixel (rows 0-1 of ``P`` divided
+        by it, as the GAC's feature maps).
+      max_depth: the depth at and above the horizon, and the most the road gets.
+    Returns:
+      (B, h, w) float32 ``log(min(z_road, max_depth))``.
+    """
+    B = P.shape[0]
+    Pf = feature_projection(jnp.asarray(P, jnp.float32), stride)
+    planes = frame_planes(plane, B, camera_height, jnp.float32)
+    # the GAC's virtual disparity fy * B / z for a baseline B = 1: fy / z
+    _, _, disp = ground_maps(Pf, planes, size, DEFAULT_OBJECT_HEIGHT, 1.0, "paper")
+    inverse = disp / jnp.abs(Pf[:, 1, 1])[:, None, None]
+    return -jnp.log(jnp.maximum(inverse, 1.0 / max_depth))
 
 
 def output_sizes(image_size: tuple[int, int]) -> dict[str, tuple[int, int]]:

@@ -191,6 +191,21 @@ def _plane_maps(
     return tuple(g.reshape(t.name, [-1, 1, H, W]) for t in (rows, cols, disparity))
 
 
+def _ground_log_depth(
+    g: GraphBuilder, entries: list[_Sym], plane: list[_Sym], size: tuple[int, int], model
+) -> str:
+    """(B,H,W) :func:`~gac_jax.models.depth_unet.ground_log_depth` of the input pixels."""
+    H, W = size
+    P = _feature_projection(entries, (1.0,), True)
+    u = _Sym(g, g.const(np.arange(W, dtype=np.float32).reshape(1, 1, W), "cols"))
+    v = _Sym(g, g.const(np.arange(H, dtype=np.float32).reshape(1, H, 1), "rows"))
+    disparity = ground_disparity(plane_terms(P, plane), u, v, 1.0, _SYM_OPS)
+    inverse = disparity / _SYM_OPS.abs(P[1][1])
+    floor = g.const(np.float32(1.0 / model.prior_max_depth))
+    log = g.op("Log", [g.op("Max", [inverse.name, floor])])
+    return g.reshape(g.op("Neg", [log]), [-1, H, W])
+
+
 def _taps(g: GraphBuilder, x: str, n: int) -> tuple[str, str, str]:
     """Border-clamped linear taps of coordinates ``x`` on ``[0, n-1]``: ``(i0, i1, frac)``
     (int64, int64, float), as :func:`~gac_jax.models.ground_aware_conv.bilinear_gather`."""
@@ -428,10 +443,14 @@ def depth_graph(
         x = g.conv(x, w.conv(name, "conv1"), w.bn(name, "bn1"), relu=True, winograd_size=want)
         x = g.conv(x, w.conv(name, "conv2"), w.bn(name, "bn2"), relu=True)
         have = want
+    ground = model.output_prior == "ground_plane"
     log_depth = _resized_single_channel_conv(
-        g, x, (H, W), w.conv("out_scale_1"), float(model.prior_mean)
+        g, x, (H, W), w.conv("out_scale_1"), 0.0 if ground else float(model.prior_mean)
     )
     log_depth = g.reshape(log_depth, [-1, H, W])
+    if ground:  # the road's log depth at every pixel (DepthUNet's 'ground_plane' prior)
+        prior = _ground_log_depth(g, _frame_entries(g, P2, 12), plane, (H, W), model)
+        log_depth = g.op("Add", [log_depth, prior])
     g.add_output(log_depth, "log_depth", ["batch", H, W])
     g.add_output(g.op("Exp", [log_depth]), "depth", ["batch", H, W])
     return g.model(opset, "GAC ground-aware depth U-Net (gac_jax)")

@@ -119,7 +119,10 @@ def depth_source(
     decoding = {
         "outputs": {
             "log_depth": "(B, H, W) natural-log depth in metres (the scale_1 head, prior mean "
-            "folded into its bias)",
+            "folded into its bias)"
+            if model.output_prior == "mean"
+            else "(B, H, W) natural-log depth in metres (the scale_1 head plus the road's log "
+            "depth at every pixel, from P2 and plane, at most prior_max_depth)",
             "depth": "(B, H, W) metres = exp(log_depth)",
         },
         "prior_mean": float(model.prior_mean),
