@@ -43,6 +43,21 @@ def synthetic_config() -> ml_collections.ConfigDict:
     )  # fmt: skip
 
 
+# the generator's share options and their cache folder suffixes (``..._dc0.5``), in the
+# folder name's order; a dataset without one (share 0) is named as before it existed
+SHARE_SUFFIXES = {
+    "randomize": "dr",
+    "photo": "ph",
+    "randomize_cars": "dc",
+    "large_vehicles": "lv",
+    "gardens": "g",
+}
+
+
+def _shares(s: ml_collections.ConfigDict) -> dict[str, float]:
+    return {key: float(s.get(key, 0.0)) for key in SHARE_SUFFIXES}
+
+
 def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
     """Folder of the embedded dataset described by ``cfg`` (``data.synthetic``)."""
     if cfg.get("root"):
@@ -54,16 +69,8 @@ def synthetic_dataset_dir(cfg: ml_collections.ConfigDict) -> Path:
     # (a new version of the frames gets a folder of its own: an older cache stays readable to
     # the run folders that recorded it, and is never taken for the new one)
     name += f"_v{FORMAT_VERSION}" if FORMAT_VERSION > 1 else ""
-    randomize = float(s.get("randomize", 0.0))
-    name += f"_dr{randomize:g}" if randomize > 0 else ""
-    photo = float(s.get("photo", 0.0))
-    name += f"_ph{photo:g}" if photo > 0 else ""
-    cars = float(s.get("randomize_cars", 0.0))
-    name += f"_dc{cars:g}" if cars > 0 else ""
-    large = float(s.get("large_vehicles", 0.0))
-    name += f"_lv{large:g}" if large > 0 else ""
-    garden = float(s.get("gardens", 0.0))
-    name += f"_g{garden:g}" if garden > 0 else ""
+    for key, share in _shares(s).items():
+        name += f"_{SHARE_SUFFIXES[key]}{share:g}" if share > 0 else ""
     rig_set = s.get("rigs", "kitti")
     return default_cache_dir() / (name if rig_set == "kitti" else f"{name}_{rig_set}rig")
 
@@ -102,11 +109,7 @@ def prepare_dataset(cfg: ml_collections.ConfigDict) -> Path:
                 width=s.width,
                 val_fraction=s.val_fraction,
                 rig_set=s.get("rigs", "kitti"),
-                randomize=float(s.get("randomize", 0.0)),
-                photo=float(s.get("photo", 0.0)),
-                randomize_cars=float(s.get("randomize_cars", 0.0)),
-                large_vehicles=float(s.get("large_vehicles", 0.0)),
-                gardens=float(s.get("gardens", 0.0)),
+                **_shares(s),
                 workers=s.get("workers") or None,  # 0 / absent: one per core
                 progress=True,  # what, where and about how long; then a bar or a line per ~10 %
                 should_stop=stopping.stop_requested,  # a stop signal stops it at once

@@ -97,11 +97,10 @@ def make_frame(
       gardens: probability that an urban roadside has front gardens, its buildings set back
         3-14 m behind lawns, hedges and trees (:mod:`gardens`; 0 = none).
     """
-    streams = _streams(seed, index)
-    rig_rng, scene_rng, camera_rng, lidar_rng, random_rng, photo_rng, car_rng, vehicle_rng = (
-        streams[:8]
-    )
-    garden_rng = streams[8]
+    (
+        rig_rng, scene_rng, camera_rng, lidar_rng, random_rng, photo_rng, car_rng, vehicle_rng,
+        garden_rng,
+    ) = _streams(seed, index)  # fmt: skip
     rig_index = rigs.choose_rig(rig_set, rig_rng)
     rig = rigs.cameras(rig_set)[rig_index]
     pose = rigs.sample_pose(rig_set, rig_index, rig_rng)
