@@ -4,16 +4,14 @@ frame without them), deterministic per seed, labels still on their pixels."""
 
 from __future__ import annotations
 
-import ml_collections
 import numpy as np
 import pytest
 
-from gac_jax.builders.datasets import synthetic_config, synthetic_dataset_dir
 from gac_jax.data.synthetic import gardens, shapes
 from gac_jax.data.synthetic.__main__ import main as cli_main
 from gac_jax.data.synthetic.frame import make_frame
 from gac_jax.data.synthetic.roadside import ROAD_END
-from gac_jax.data.synthetic.writer import DatasetSpec
+from tests.share_options import check_described_and_named, check_deterministic_and_zero
 
 SIZE = (188, 621)
 FRAMES = (3, 11)  # frames of seed 0 with urban roadsides
@@ -89,15 +87,7 @@ def test_labels_still_lie_on_their_pixels(pairs):
 
 def test_deterministic_per_seed_and_zero_is_the_frame_without_them(pairs):
     plain, frame = pairs[0]
-    again = make_frame(0, FRAMES[0], SIZE, gardens=1.0)
-    for cam in (2, 3):
-        np.testing.assert_array_equal(again.views[cam].image, frame.views[cam].image)
-        np.testing.assert_array_equal(again.views[cam].depth, frame.views[cam].depth)
-    np.testing.assert_array_equal(again.objects.bbox, frame.objects.bbox)
-    other = make_frame(1, FRAMES[0], SIZE, gardens=1.0)
-    assert not np.array_equal(other.views[2].image, frame.views[2].image)
-    zero = make_frame(0, FRAMES[0], SIZE, gardens=0.0)
-    np.testing.assert_array_equal(zero.views[2].image, plain.views[2].image)
+    check_deterministic_and_zero("gardens", FRAMES[0], SIZE, plain, frame, depth=True)
 
 
 def test_plan_gives_an_urban_side_gardens_with_the_share():
@@ -115,15 +105,7 @@ def test_plan_gives_an_urban_side_gardens_with_the_share():
 
 
 def test_dataset_description_cache_folder_and_cli(tmp_path, capsys):
-    # (a dataset without it is described as before, so existing caches stay valid)
-    assert "gardens" not in DatasetSpec(num_frames=4, seed=3).to_json()
-    assert DatasetSpec(num_frames=4, seed=3, gardens=0.3).to_json()["gardens"] == 0.3
-    with pytest.raises(ValueError, match="gardens must be a share"):
-        DatasetSpec(num_frames=4, seed=3, gardens=-0.1).validate()
-    cfg = ml_collections.ConfigDict({"source": "synthetic", "synthetic": synthetic_config()})
-    plain_dir = synthetic_dataset_dir(cfg)
-    cfg.synthetic.gardens = 0.3
-    assert synthetic_dataset_dir(cfg).name == plain_dir.name + "_g0.3"
+    check_described_and_named("gardens", 0.3, invalid=-0.1)
     with pytest.raises(SystemExit) as e:
         cli_main(["--out", str(tmp_path / "c"), "--sequences", "1", "--frames-per-sequence", "2",
                   "--gardens", "0.5"])  # fmt: skip

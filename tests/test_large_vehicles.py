@@ -4,17 +4,15 @@ scene is unchanged), deterministic per seed, and background to a Car detector.""
 
 from __future__ import annotations
 
-import ml_collections
 import numpy as np
 import pytest
 
-from gac_jax.builders.datasets import synthetic_config, synthetic_dataset_dir
 from gac_jax.data.loader import detection_arrays
 from gac_jax.data.synthetic import vehicles
 from gac_jax.data.synthetic.__main__ import main as cli_main
 from gac_jax.data.synthetic.frame import make_frame
-from gac_jax.data.synthetic.writer import DatasetSpec
 from gac_jax.geometry import box2d_from_corners, box3d_corners
+from tests.share_options import check_described_and_named, check_deterministic_and_zero
 
 SIZE = (188, 621)
 FRAMES = (0, 2, 3)  # frames of seed 0 whose vans and trucks are labelled (not all DontCare)
@@ -68,14 +66,7 @@ def test_the_rest_of_the_scene_is_the_frame_without_them(pairs):
 
 def test_deterministic_per_seed_and_zero_is_the_frame_without_them(pairs):
     plain, frame = pairs[0]
-    again = make_frame(0, FRAMES[0], SIZE, large_vehicles=1.0)
-    for cam in (2, 3):
-        np.testing.assert_array_equal(again.views[cam].image, frame.views[cam].image)
-    np.testing.assert_array_equal(again.objects.bbox, frame.objects.bbox)
-    other = make_frame(1, FRAMES[0], SIZE, large_vehicles=1.0)
-    assert not np.array_equal(other.views[2].image, frame.views[2].image)
-    zero = make_frame(0, FRAMES[0], SIZE, large_vehicles=0.0)
-    np.testing.assert_array_equal(zero.views[2].image, plain.views[2].image)
+    check_deterministic_and_zero("large_vehicles", FRAMES[0], SIZE, plain, frame)
     drawn = [
         any(
             o.type in vehicles.SIZES
@@ -99,15 +90,7 @@ def test_a_car_detector_learns_them_as_background(pairs):
 
 
 def test_dataset_description_cache_folder_and_cli():
-    # (a dataset without it is described as before, so existing caches stay valid)
-    assert "large_vehicles" not in DatasetSpec(num_frames=4, seed=3).to_json()
-    assert DatasetSpec(num_frames=4, seed=3, large_vehicles=0.3).to_json()["large_vehicles"] == 0.3
-    with pytest.raises(ValueError, match="large_vehicles must be a share"):
-        DatasetSpec(num_frames=4, seed=3, large_vehicles=1.5).validate()
-    cfg = ml_collections.ConfigDict({"source": "synthetic", "synthetic": synthetic_config()})
-    plain_dir = synthetic_dataset_dir(cfg)
-    cfg.synthetic.large_vehicles = 0.3
-    assert synthetic_dataset_dir(cfg).name == plain_dir.name + "_lv0.3"
+    check_described_and_named("large_vehicles", 0.3, invalid=1.5)
 
 
 def test_cli_refuses_it_for_clips(tmp_path, capsys):

@@ -6,14 +6,12 @@ from __future__ import annotations
 import hashlib
 
 import cv2
-import ml_collections
 import numpy as np
 import pytest
 
-from gac_jax.builders.datasets import synthetic_config, synthetic_dataset_dir
 from gac_jax.data.synthetic import photo_textures, render, shapes
 from gac_jax.data.synthetic.frame import make_frame
-from gac_jax.data.synthetic.writer import DatasetSpec
+from tests.share_options import check_described_and_named
 
 
 def test_textures_are_the_vendored_photographs_and_their_pyramid_averages_2x2():
@@ -103,12 +101,5 @@ def test_photo_zero_and_undrawn_frames_are_the_frames_without_it():
     assert 1 <= sum(drawn) <= 3  # about half of the frames have photo textures
     zero = make_frame(3, 6, (94, 311), photo=0.0)
     np.testing.assert_array_equal(zero.views[2].image, plain.views[2].image)
-    # (a dataset without it is described as before, so existing caches stay valid)
-    assert "photo" not in DatasetSpec(num_frames=4, seed=3).to_json()
-    assert DatasetSpec(num_frames=4, seed=3, photo=0.5).to_json()["photo"] == 0.5
-    with pytest.raises(ValueError, match="photo must be a share"):
-        DatasetSpec(num_frames=4, seed=3, photo=-0.1).validate()
-    cfg = ml_collections.ConfigDict({"source": "synthetic", "synthetic": synthetic_config()})
-    plain_dir = synthetic_dataset_dir(cfg)
-    cfg.synthetic.photo = 1.0
-    assert synthetic_dataset_dir(cfg).name == plain_dir.name + "_ph1"
+    check_described_and_named("photo", 0.5, invalid=-0.1)
+    check_described_and_named("photo", 1.0, invalid=-0.1)  # (folder "_ph1")
