@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 import ml_collections
 
-from gac_jax.builders.datasets import plane_ops, prepare_dataset
-from gac_jax.data import camera_effects, cast_shadows, transforms
+from gac_jax.builders.datasets import appearance_ops, plane_ops, prepare_dataset
+from gac_jax.data import transforms
 from gac_jax.data.kitti_depth import list_selection
 from gac_jax.data.sources import KittiDepthSelectionSource, open_depth_source
 from gac_jax.evaluation.depth_evaluator import DepthEvaluator
@@ -38,13 +38,7 @@ def _view_ops(d: ml_collections.ConfigDict) -> list:
 def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
     d = config.data
     ops = _view_ops(d) + [transforms.RandomCropWidth(d.width)]
-    shadows = cast_shadows.from_config(d)  # (absent in older run folders: none)
-    if shadows is not None:
-        ops.append(shadows)
-    if d.get("camera_effects", False):  # absent in older run folders
-        ops.append(camera_effects.from_config(d))
-    if d.photometric:
-        ops.append(transforms.PhotometricDistort())
+    ops += appearance_ops(d)
     if d.flip_prob > 0:
         ops.append(transforms.RandomHorizontalFlip(d.flip_prob))
     ops.append(transforms.Normalize())

@@ -13,8 +13,8 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from gac_jax.builders.datasets import plane_ops
-from gac_jax.data import camera_effects, cast_shadows, transforms
+from gac_jax.builders.datasets import appearance_ops, plane_ops
+from gac_jax.data import transforms
 from gac_jax.data.loader import Loader
 from gac_jax.data.sources import open_object_source
 from gac_jax.detection.anchor_priors import load_or_compute_priors, prior_frame_from_objects
@@ -64,13 +64,7 @@ def train_transform(config: ml_collections.ConfigDict) -> transforms.Compose:
         transforms.Resize(d.height, calibration=d.get("resize_calibration", "grid")),
         transforms.CropOrPadWidth(d.width),
     ]
-    shadows = cast_shadows.from_config(d)  # (absent in older run folders: none)
-    if shadows is not None:
-        ops.append(shadows)
-    if d.get("camera_effects", False):  # absent in older run folders
-        ops.append(camera_effects.from_config(d))
-    if d.photometric:
-        ops.append(transforms.PhotometricDistort())
+    ops += appearance_ops(d)
     if d.flip_prob > 0:
         ops.append(transforms.RandomHorizontalFlip(d.flip_prob))
     if d.reproject_boxes:
