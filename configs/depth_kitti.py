@@ -76,6 +76,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.photometric = True
     # share of the training images given random cast shadows (data/cast_shadows.py); 0 = off
     c.data.cast_shadows = 0.0
+    # share of the training images filtered by a random convolution (data/random_convolution.py)
+    c.data.random_convolution = 0.0
     c.data.batch_size = 8  # global batch
     c.data.num_workers = 4
     c.data.eval_batch_size = 4

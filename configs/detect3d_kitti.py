@@ -54,6 +54,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.photometric = True
     # share of the training images given random cast shadows (data/cast_shadows.py); 0 = off
     c.data.cast_shadows = 0.0
+    # share of the training images filtered by a random convolution (data/random_convolution.py)
+    c.data.random_convolution = 0.0
     c.data.reproject_boxes = True  # train on 2D boxes re-derived from the 3D labels (reference)
     c.data.max_occlusion = 2  # keep occlusion levels < 2
     c.data.min_depth = 3.0

@@ -1,16 +1,12 @@
 """Cast shadows as a training augmentation: pixels only, darker and bluer inside the shadow,
-nothing above the ground rows, deterministic per sample stream, off by default."""
+nothing above the ground rows, deterministic per sample stream (the config key and the CLI:
+tests/test_appearance_ops.py)."""
 
 from __future__ import annotations
 
-import ml_collections
 import numpy as np
 import pytest
 
-from gac_jax.builders import depth as depth_builder
-from gac_jax.builders import detect3d as detect3d_builder
-from gac_jax.config import REPO_CONFIGS, ConfigError, load_config
-from gac_jax.data import cast_shadows
 from gac_jax.data.cast_shadows import CastShadows, dapple_mask, polygon_mask
 
 SIZE = (96, 320)
@@ -94,40 +90,3 @@ def test_shapes_lie_below_top_and_dapples_have_sunlit_holes():
         assert ellipse_rows.size
         covers.append(m.mean())
     assert 0.0 < np.median(covers) < 0.5  # crowns of part of the image, with holes
-
-
-def test_config_key_builds_the_transform_only_when_set():
-    assert cast_shadows.from_config(ml_collections.ConfigDict({})) is None
-    assert cast_shadows.from_config(ml_collections.ConfigDict({"cast_shadows": 0.0})) is None
-    assert cast_shadows.from_config(ml_collections.ConfigDict({"cast_shadows": 0.4})).p == 0.4
-    for builder, name in (
-        (depth_builder, "depth_default.py"),
-        (detect3d_builder, "detect3d_default.py"),
-    ):
-        config = load_config(str(REPO_CONFIGS / name))
-        assert config.data.cast_shadows == 0.0
-        assert not any(
-            isinstance(op, CastShadows) for op in builder.train_transform(config).transforms
-        )
-        config.data.cast_shadows = 0.5
-        ops = builder.train_transform(config).transforms
-        assert [op.p for op in ops if isinstance(op, CastShadows)] == [0.5]
-        assert not any(
-            isinstance(op, CastShadows) for op in builder.eval_transform(config).transforms
-        )
-
-
-@pytest.mark.parametrize("task", ["detect3d", "depth"])
-def test_a_share_out_of_range_is_one_line_before_any_work(task, tmp_path, capsys):
-    import train
-
-    workdir = tmp_path / "run"
-    args = ["--task", task, "--config", f"configs/{task}_default.py:tiny"]
-    code = train._run(train.parse_args([*args, "--workdir", str(workdir), "data.cast_shadows=1.5"]))
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2
-    assert err == ["error: data.cast_shadows=1.5: the share of training images must be in [0, 1]"]
-    # nothing generated, configured or trained first (the run folder's lock and log only)
-    assert not (workdir / "config.json").exists() and not (workdir / "checkpoints").exists()
-    with pytest.raises(ConfigError):
-        cast_shadows.from_config(ml_collections.ConfigDict({"cast_shadows": -0.1}))

@@ -11,7 +11,7 @@ from pathlib import Path
 import jax
 import ml_collections
 
-from gac_jax.data import camera_effects, cast_shadows, transforms
+from gac_jax.data import camera_effects, cast_shadows, random_convolution, transforms
 from gac_jax.data.cache import default_cache_dir
 from gac_jax.data.files import KittiFormatError, atomic_write
 from gac_jax.progress import say
@@ -135,14 +135,18 @@ def plane_ops(data: ml_collections.ConfigDict) -> list:
 
 def appearance_ops(data: ml_collections.ConfigDict) -> list:
     """The pixel-only augmentations of both tasks' training chains, in order: cast shadows
-    (``data.cast_shadows`` > 0), camera effects (``data.camera_effects``), the reference's
-    photometric distortion (``data.photometric``). Keys absent from older run folders: off."""
+    (``data.cast_shadows`` > 0), camera effects (``data.camera_effects``), random convolutions
+    (``data.random_convolution`` > 0), the reference's photometric distortion
+    (``data.photometric``). Keys absent from older run folders: off."""
     ops: list = []
     shadows = cast_shadows.from_config(data)
     if shadows is not None:
         ops.append(shadows)
     if data.get("camera_effects", False):
         ops.append(camera_effects.from_config(data))
+    randconv = random_convolution.from_config(data)
+    if randconv is not None:
+        ops.append(randconv)
     if data.photometric:
         ops.append(transforms.PhotometricDistort())
     return ops

@@ -118,7 +118,7 @@ def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dic
     is_main = jax.process_index() == 0
     compute_dtype(config)  # bad train.compute_dtype / profile_steps: one line, before any work
     profile_range(config.train.get("profile_steps"))
-    train_transform(config)  # bad augmentation settings (data.cast_shadows): one line, too
+    train_transform(config)  # bad augmentation shares: one line, too
     if is_main:
         workdir.mkdir(parents=True, exist_ok=True)
         save_config(config, workdir)
