@@ -24,6 +24,18 @@ class ConfigError(ValueError):
     """A config file or override is invalid; the message says which and why."""
 
 
+def share_of_images(data, key: str) -> float:
+    """``data[key]`` (0 when absent), a share of the training images an augmentation touches.
+
+    Raises:
+      ConfigError: it is not in [0, 1].
+    """
+    share = float(data.get(key, 0.0))
+    if not 0.0 <= share <= 1.0:
+        raise ConfigError(f"data.{key}={share}: the share of training images must be in [0, 1]")
+    return share
+
+
 def resolve_config_path(spec: str) -> tuple[Path, str | None]:
     """Splits ``path[:arg]`` and finds the file (as given, or under ``configs/``)."""
     path_str, arg = spec, None

@@ -12,19 +12,22 @@ from gac_jax.data.cast_shadows import CastShadows, dapple_mask, polygon_mask
 SIZE = (96, 320)
 
 
-def _sample(seed: int = 0) -> dict:
+def random_sample(seed: int = 0, size: tuple[int, int] = SIZE) -> dict:
+    """A training sample of random pixels and depths (pixel augmentations' tests)."""
     g = np.random.default_rng(100 + seed)
     return {
-        "image": g.uniform(30, 230, SIZE + (3,)).astype(np.float32),
-        "P2": np.array([[700.0, 0, 160, 40], [0, 700.0, 48, 0.2], [0, 0, 1, 0.004]]),
-        "depth": g.uniform(1, 80, SIZE).astype(np.float32),
+        "image": g.uniform(30, 230, size + (3,)).astype(np.float32),
+        "P2": np.array(
+            [[700.0, 0, size[1] / 2, 40], [0, 700.0, size[0] / 2, 0.2], [0, 0, 1, 0.004]]
+        ),
+        "depth": g.uniform(1, 80, size).astype(np.float32),
         "objects": object(),
         "rng": np.random.default_rng(seed),
     }
 
 
 def test_only_the_pixels_change_and_only_darker():
-    sample = _sample()
+    sample = random_sample()
     out = CastShadows(p=1.0)(dict(sample, rng=np.random.default_rng(1)))
     assert out["image"].shape == sample["image"].shape and out["image"].dtype == np.float32
     for key in ("P2", "depth", "objects"):
@@ -52,18 +55,18 @@ def test_the_rows_above_top_are_never_touched():
     t = CastShadows(p=1.0, max_shadows=6, edge_sigma=(2.0, 2.0), top=0.4)
     top = int(np.ceil(0.4 * SIZE[0]))
     for seed in range(20):
-        sample = _sample(seed)
+        sample = random_sample(seed)
         out = t(sample)["image"]
         np.testing.assert_array_equal(out[:top], sample["image"][:top])
 
 
 def test_deterministic_per_stream_and_off_at_zero():
     t = CastShadows(p=1.0)
-    a = t(_sample(3))["image"]
-    np.testing.assert_array_equal(a, t(_sample(3))["image"])
-    b = t(dict(_sample(3), rng=np.random.default_rng(4)))["image"]
+    a = t(random_sample(3))["image"]
+    np.testing.assert_array_equal(a, t(random_sample(3))["image"])
+    b = t(dict(random_sample(3), rng=np.random.default_rng(4)))["image"]
     assert not np.array_equal(a, b)
-    sample = _sample(3)
+    sample = random_sample(3)
     np.testing.assert_array_equal(CastShadows(p=0.0)(sample)["image"], sample["image"])
     with pytest.raises(ValueError, match="not in"):
         CastShadows(p=1.5)

@@ -8,19 +8,13 @@ import numpy as np
 import pytest
 
 from gac_jax.data.random_convolution import RandomConvolution, random_filter
+from tests.test_cast_shadows import random_sample
 
 SIZE = (40, 96)
 
 
 def _sample(seed: int = 0) -> dict:
-    g = np.random.default_rng(100 + seed)
-    return {
-        "image": g.uniform(30, 230, SIZE + (3,)).astype(np.float32),
-        "P2": np.array([[700.0, 0, 48, 40], [0, 700.0, 20, 0.2], [0, 0, 1, 0.004]]),
-        "depth": g.uniform(1, 80, SIZE).astype(np.float32),
-        "objects": object(),
-        "rng": np.random.default_rng(seed),
-    }
+    return random_sample(seed, SIZE)
 
 
 def _reference(x: np.ndarray, w: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ import dataclasses
 import cv2
 import numpy as np
 
-from gac_jax.config import ConfigError
+from gac_jax.config import share_of_images
 
 Sample = dict
 
@@ -140,11 +140,7 @@ def from_config(data) -> CastShadows | None:
     Raises:
       ConfigError: the share is not in [0, 1].
     """
-    share = float(data.get("cast_shadows", 0.0))
-    if not 0.0 <= share <= 1.0:
-        raise ConfigError(
-            f"data.cast_shadows={share}: the share of training images must be in [0, 1]"
-        )
+    share = share_of_images(data, "cast_shadows")
     if share == 0.0:
         return None
     return CastShadows(p=share)

@@ -20,7 +20,7 @@ import dataclasses
 import cv2
 import numpy as np
 
-from gac_jax.config import ConfigError
+from gac_jax.config import share_of_images
 
 Sample = dict
 
@@ -94,11 +94,7 @@ def from_config(data) -> RandomConvolution | None:
     Raises:
       ConfigError: the share is not in [0, 1].
     """
-    share = float(data.get("random_convolution", 0.0))
-    if not 0.0 <= share <= 1.0:
-        raise ConfigError(
-            f"data.random_convolution={share}: the share of training images must be in [0, 1]"
-        )
+    share = share_of_images(data, "random_convolution")
     if share == 0.0:
         return None
     return RandomConvolution(p=share)
