@@ -21,11 +21,11 @@ split it was trained beside, so that tuning to the 13 real frames shows:
   and such a scale bias alone keeps boxes under KITTI's IoU 0.7);
 * a picture grid of the 13 frames (``OUT/real/pictures/grid.png``);
 * with the generated val split scored: the run's operating point chosen there
-  (``gac_jax/evaluation/operating_point.py``: the score threshold of best F1 on a grid from
-  ``eval.score_threshold`` to 0.95; the one the final evaluation of training records and a
-  default run deploys), the real frames' false positives and cars found at that threshold, and
-  their picture grid there (``OUT/real/pictures_operating_point/grid.png``). Nothing real
-  chooses it.
+  (``gac_jax/evaluation/operating_point.py``: the score threshold of best F-beta, beta from
+  the run's ``eval.operating_point_beta``, on a grid from ``eval.score_threshold`` to 0.95; the
+  one the final evaluation of training records and a default run deploys), the real frames'
+  false positives and cars found at that threshold, and their picture grid there
+  (``OUT/real/pictures_operating_point/grid.png``). Nothing real chooses it.
 
 ``--steps S ...`` also scores those earlier checkpoints of the run on the real frames and
 prints each figure's mean and range over the checkpoints: 13 frames (32 cars) and one
@@ -179,6 +179,7 @@ def score_generated(workdir: Path, out: Path) -> dict:
         "frames": summary["num_frames"],
         "sweep": record["sweep"],
         "operating_point": record["threshold"],
+        "operating_point_beta": record["beta"],
     }
 
 
@@ -317,9 +318,10 @@ def main() -> None:
     if "at_operating_point" in r:
         o = r["at_operating_point"]
         g = result["generated_val"]["sweep"][f"{o['threshold']:.2f}"]
+        beta = result["generated_val"]["operating_point_beta"]
         print(
-            f"  at the operating point chosen on generated val (score {o['threshold']:g}, best F1 "
-            f"there: precision {g['precision']:.2f}, recall {g['recall']:.2f}, "
+            f"  at the operating point chosen on generated val (score {o['threshold']:g}, best "
+            f"F{beta:g} there: precision {g['precision']:.2f}, recall {g['recall']:.2f}, "
             f"{g['false_positives']:.2f} false positives per frame): real frames "
             f"{o['false_positives']:.2f} false positives per frame, {o['found']} cars found at "
             f"IoU 0.5, precision {o['precision']:.2f}, recall {o['recall']:.2f}; pictures: "

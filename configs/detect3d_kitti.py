@@ -133,9 +133,12 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.eval = ml_collections.ConfigDict()
     c.eval.score_threshold = 0.75
     # the threshold predict, the streams and the guard run at: 'score_threshold' (the one above,
-    # the authors') or 'operating_point' (the best-F1 threshold an evaluation on the val split
-    # recorded for the weights; gac_jax/trained/operating_point.py)
+    # the authors') or 'operating_point' (the best-F-beta threshold an evaluation on the val
+    # split recorded for the weights; gac_jax/trained/operating_point.py)
     c.eval.deploy_threshold = "score_threshold"
+    # the operating point's beta: 1 = best F1; below 1 weighs precision more than recall
+    # (gac_jax/evaluation/operating_point.py)
+    c.eval.operating_point_beta = 1.0
     c.eval.nms_iou = 0.5
     c.eval.class_agnostic_nms = True
     c.eval.hill_climbing = True

@@ -12,7 +12,10 @@ import pytest
 from label_cases import label_line, objects
 
 from gac_jax.evaluation.operating_point import (
-    best_f1_threshold,
+    best_threshold,
+    check_beta,
+    describe,
+    f_beta,
     frame_counts,
     operating_point,
     threshold_grid,
@@ -77,12 +80,65 @@ def test_threshold_sweep_and_best_f1_by_hand():
         "f1": pytest.approx(2 / 3),
     }
     assert sweep[0.95]["f1"] == 0.0 and sweep[0.95]["found"] == 0
-    assert best_f1_threshold(sweep) == 0.8
+    assert best_threshold(sweep) == 0.8
     # a tie goes to the lowest threshold
-    assert best_f1_threshold({0.7: {"f1": 0.5}, 0.6: {"f1": 0.5}}) == 0.6
+    tie = {"precision": 0.5, "recall": 0.5}
+    assert best_threshold({0.7: tie, 0.6: tie}) == 0.6
     # pooled over classes: the pedestrian (80 px tall) counts as one more object to find
     pooled = threshold_sweep([GT], [dt], (0.8,), ("Car", "Pedestrian"))[0.8]
     assert pooled["recall"] == pytest.approx(0.5) and pooled["found"] == 1
+
+
+def test_f_beta_by_hand_and_a_lower_beta_deploys_a_higher_threshold():
+    assert f_beta(0.6, 0.9) == pytest.approx(2 * 0.54 / 1.5)
+    assert f_beta(0.6, 0.9, 0.5) == pytest.approx(1.25 * 0.54 / (0.25 * 0.6 + 0.9))
+    assert f_beta(0.95, 0.55, 2.0) == pytest.approx(5 * 0.95 * 0.55 / (4 * 0.95 + 0.55))
+    assert f_beta(1.0, 1.0, 0.5) == 1.0 and f_beta(0.0, 0.0, 0.5) == 0.0
+    # F1 0.720 at 0.5 against 0.697 at 0.8; F0.5 0.643 against 0.829: precision weighs more
+    sweep = {
+        "0.50": {"precision": 0.6, "recall": 0.9},
+        "0.80": {"precision": 0.95, "recall": 0.55},
+    }
+    assert best_threshold(sweep) == "0.50" and best_threshold(sweep, 0.5) == "0.80"
+    for bad in (0, -1, "x", None, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="eval.operating_point_beta must be a number > 0"):
+            check_beta(bad)
+    assert check_beta("0.5") == 0.5
+
+
+def test_operating_point_records_its_beta_and_says_it():
+    dt = objects(
+        [
+            label_line("Car", (100, 100, 200, 160), score=0.9),  # the tall car
+            label_line("Car", (400, 100, 440, 120), score=0.7),  # the 20 px car: true, no recall
+            label_line("Car", (1000, 100, 1050, 140), score=0.6),  # false
+            label_line("Car", (1100, 100, 1150, 140), score=0.55),  # false
+        ],
+        True,
+    )
+    # one tall car: recall 1 from 0.5 to 0.9; precision 2/4, 2/3, 1, 1 at 0.5, 0.6, 0.65, 0.75
+    f1 = operating_point([GT], [dt], ("Car",), 0.5)
+    assert f1["threshold"] == 0.65 and f1["beta"] == 1.0 and "best F1 " in f1["rule"]
+    half = operating_point([GT], [dt], ("Car",), 0.5, beta=0.5)
+    assert half["threshold"] == 0.65 and half["beta"] == 0.5 and "best F0.5 " in half["rule"]
+    assert "(best F0.5 1.00: precision 1.00, recall 1.00" in describe(half)
+    assert "(best F1 1.00:" in describe({k: v for k, v in f1.items() if k != "beta"})
+    with pytest.raises(ValueError, match="operating_point_beta"):
+        operating_point([GT], [dt], ("Car",), 0.5, beta=0)
+
+
+def test_a_bad_operating_point_beta_is_one_line_before_any_work(tmp_path, capsys):
+    import train
+
+    workdir = tmp_path / "run"
+    args = ["--task", "detect3d", "--config", "configs/detect3d_default.py:tiny"]
+    code = train._run(
+        train.parse_args([*args, "--workdir", str(workdir), "eval.operating_point_beta=0"])
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert err == ["error: eval.operating_point_beta must be a number > 0, got 0.0"]
+    assert not (workdir / "config.json").exists() and not (workdir / "checkpoints").exists()
 
 
 def test_threshold_grid_starts_at_the_evaluation_threshold():
@@ -166,6 +222,39 @@ def test_api_runs_at_the_recorded_operating_point_of_these_weights_only(
     bad = _deployable_copy(tiny_detect3d_workdir, tmp_path / "bad", "best")
     with pytest.raises(InputError, match="eval.deploy_threshold must be one of"):
         Detector3D.from_workdir(bad)
+
+
+def test_a_record_of_another_beta_is_chosen_again_from_its_sweep(tiny_detect3d_workdir, tmp_path):
+    from gac_jax.api import Detector3D, InputError
+
+    run = _deployable_copy(tiny_detect3d_workdir, tmp_path)
+    path = run / "results/step_2/operating_point.json"
+    record = json.loads(path.read_text())
+    entry = {"detections": 1.0, "false_positives": 0.5, "found": 3}
+    record["sweep"] = {
+        "0.50": {**entry, "precision": 0.6, "recall": 0.9},
+        "0.80": {**entry, "precision": 0.95, "recall": 0.55},
+    }
+    record.update(threshold=0.5, beta=1.0)  # F1's choice
+    path.write_text(json.dumps(record))
+    config = json.loads((run / "config.json").read_text())
+
+    def deployed(beta):
+        config["eval"]["operating_point_beta"] = beta
+        (run / "config.json").write_text(json.dumps(config))
+        return Detector3D.from_workdir(run)
+
+    half = deployed(0.5)
+    assert (
+        half.score_threshold == 0.8 and "(best F0.5 0.83: precision 0.95" in half.threshold_source
+    )
+    one = deployed(1.0)
+    assert one.score_threshold == 0.5 and "(best F1 0.72: precision 0.60" in one.threshold_source
+    del config["eval"]["operating_point_beta"]  # a run config from before the key: F1
+    (run / "config.json").write_text(json.dumps(config))
+    assert Detector3D.from_workdir(run).score_threshold == 0.5
+    with pytest.raises(InputError, match="eval.operating_point_beta must be a number > 0"):
+        deployed(-1)
 
 
 def test_predict_cli_runs_at_the_operating_point_and_says_so(

@@ -210,6 +210,7 @@ def make_evaluator(config, model, constants, root: Path, worker_count: int) -> D
         use_ground_filter=config.anchors.filter,
         worker_count=worker_count,
         camera_height=config.model.gac.camera_height,
+        operating_point_beta=config.eval.get("operating_point_beta", 1.0),
     )
 
 

@@ -26,7 +26,7 @@ from gac_jax.data.kitti import KittiObjects, read_label, write_label
 from gac_jax.data.loader import Loader, collate, plane_array
 from gac_jax.detection.inference import PostprocessConfig, make_predict_fn, postprocess
 from gac_jax.evaluation.kitti_object import evaluate_detections
-from gac_jax.evaluation.operating_point import operating_point
+from gac_jax.evaluation.operating_point import check_beta, operating_point
 from gac_jax.geometry import DEFAULT_CAMERA_HEIGHT
 
 INPUT_KEYS = ("image", "P2", "plane", "image_transform", "original_size")
@@ -142,6 +142,8 @@ class DetectionEvaluator:
         the network and post-processing run (:meth:`predict_split`); False: serially.
       io_threads: threads reading ahead with ``overlap_io`` (default: 1 on up to 4 usable
         cores, else 2); results are the same for any count.
+      operating_point_beta: the F-beta of :meth:`evaluate`'s operating point
+        (:mod:`gac_jax.evaluation.operating_point`).
     """
 
     def __init__(
@@ -161,8 +163,10 @@ class DetectionEvaluator:
         camera_height: float = DEFAULT_CAMERA_HEIGHT,
         overlap_io: bool = True,
         io_threads: int | None = None,
+        operating_point_beta: float = 1.0,
     ):
         self.source = source
+        self.operating_point_beta = check_beta(operating_point_beta)
         self.overlap_io = overlap_io
         self.io_threads = io_threads if io_threads is not None else _default_readers()
         self.class_names = tuple(class_names)
@@ -355,6 +359,10 @@ class DetectionEvaluator:
             "num_frames": len(index),
             "candidates": self.candidate_summary(),
             "operating_point": operating_point(
-                gt, dt, self.class_names, self.postprocess_config.score_threshold
+                gt,
+                dt,
+                self.class_names,
+                self.postprocess_config.score_threshold,
+                self.operating_point_beta,
             ),
         }

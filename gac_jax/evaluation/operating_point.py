@@ -2,7 +2,9 @@
 
 AP needs every low-scoring box (``eval.score_threshold`` keeps them); a camera needs one
 threshold that trades false boxes against missed objects. The operating point is the score
-threshold of best F1 on a labelled split:
+threshold of best F-beta on a labelled split (``eval.operating_point_beta``: 1 is F1, the
+harmonic mean of precision and recall; 0.5 weighs precision twice as much as recall, for a
+camera whose false boxes cost more than its misses):
 
 * a **true** detection overlaps a labelled object of its class at 2D IoU >= 0.5 (each object
   taken once, the highest-scoring detection first);
@@ -11,7 +13,8 @@ threshold of best F1 on a labelled split:
   >= 0.5, or lies at least half inside a DontCare region;
 * every other detection is **false**;
 * precision = (detections - false) / detections, recall = objects at least 25 px tall (KITTI's
-  moderate height) found / objects at least 25 px tall, over all frames and classes pooled.
+  moderate height) found / objects at least 25 px tall, over all frames and classes pooled;
+* F-beta = (1 + beta^2) precision recall / (beta^2 precision + recall).
 
 Pure numpy on :class:`~gac_jax.data.kitti.KittiObjects` (boxes xyxy in pixels).
 """
@@ -22,6 +25,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from gac_jax.config import ConfigError
 from gac_jax.data.kitti import KittiObjects
 from gac_jax.detection.nms import box_iou_matrix
 
@@ -30,11 +34,38 @@ MATCH_IOU = 0.5
 NEIGHBOURS = {"Car": ("Van",), "Pedestrian": ("Person_sitting",)}
 GRID_STEP = 0.05
 GRID_TOP = 0.95
-RULE = (
-    "best F1 (pooled over classes; 2D IoU >= 0.5; objects >= 25 px tall; KITTI's Van / "
-    "Person_sitting / DontCare excuses) on a grid from the evaluation's score threshold to "
-    "0.95 in steps of 0.05, the lowest threshold on a tie"
-)
+
+
+def score_name(beta: float) -> str:
+    """``'F1'``, ``'F0.5'``: the F-beta score's name."""
+    return f"F{beta:g}"
+
+
+def rule(beta: float = 1.0) -> str:
+    """The operating point's rule in words (recorded with it)."""
+    return (
+        f"best {score_name(beta)} (pooled over classes; 2D IoU >= 0.5; objects >= 25 px tall; "
+        "KITTI's Van / Person_sitting / DontCare excuses) on a grid from the evaluation's score "
+        "threshold to 0.95 in steps of 0.05, the lowest threshold on a tie"
+    )
+
+
+def check_beta(beta) -> float:
+    """``beta`` as a float; a ConfigError naming ``eval.operating_point_beta`` unless > 0."""
+    try:
+        value = float(beta)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        raise ConfigError(f"eval.operating_point_beta must be a number > 0, got {beta!r}")
+    return value
+
+
+def f_beta(precision: float, recall: float, beta: float = 1.0) -> float:
+    """(1 + beta^2) P R / (beta^2 P + R); 0 where both are 0."""
+    b2 = beta * beta
+    denominator = b2 * precision + recall
+    return (1 + b2) * precision * recall / denominator if denominator else 0.0
 
 
 def inside_share(box: np.ndarray, regions: np.ndarray) -> np.ndarray:
@@ -127,9 +158,15 @@ def threshold_sweep(
     return out
 
 
-def best_f1_threshold(sweep: dict[float, dict]) -> float:
-    """The threshold of best F1 in :func:`threshold_sweep`'s output (the lowest on a tie)."""
-    return max(sorted(sweep), key=lambda t: (sweep[t]["f1"], -t))
+def best_threshold(sweep: dict[float, dict], beta: float = 1.0) -> float:
+    """The threshold of best F-beta in :func:`threshold_sweep`'s output (its ``precision``
+    and ``recall``; the lowest threshold on a tie). Keys may be floats or strings."""
+
+    def key(t):
+        score = f_beta(sweep[t]["precision"], sweep[t]["recall"], beta)
+        return (round(score, 12), -float(t))
+
+    return max(sorted(sweep, key=float), key=key)
 
 
 def threshold_grid(min_score: float) -> list[float]:
@@ -145,20 +182,23 @@ def operating_point(
     dts: Sequence[KittiObjects],
     classes: Sequence[str],
     min_score: float,
+    beta: float = 1.0,
 ) -> dict:
     """The operating point of detections kept at ``min_score`` (module docstring).
 
     Returns:
-      ``{'threshold', 'rule', 'classes', 'frames', 'objects', 'sweep'}``: ``threshold`` is
-      None where no threshold finds any object (F1 0 everywhere: nothing to choose from);
-      ``objects`` counts the labelled objects at least 25 px tall; ``sweep`` is
-      :func:`threshold_sweep` on :func:`threshold_grid` (keys as strings, for JSON).
+      ``{'threshold', 'beta', 'rule', 'classes', 'frames', 'objects', 'sweep'}``:
+      ``threshold`` is None where no threshold finds any object (F-beta 0 everywhere: nothing
+      to choose from); ``objects`` counts the labelled objects at least 25 px tall; ``sweep``
+      is :func:`threshold_sweep` on :func:`threshold_grid` (keys as strings, for JSON).
     """
+    beta = check_beta(beta)
     sweep = threshold_sweep(gts, dts, threshold_grid(min_score), classes)
-    best = best_f1_threshold(sweep)
+    best = best_threshold(sweep, beta)
     return {
-        "threshold": best if sweep[best]["f1"] > 0 else None,
-        "rule": RULE,
+        "threshold": best if sweep[best]["recall"] > 0 else None,
+        "beta": beta,
+        "rule": rule(beta),
         "classes": list(classes),
         "frames": len(gts),
         "objects": int(sum(tall_objects(g, c) for g in gts for c in classes)),
@@ -175,8 +215,10 @@ def describe(record: dict) -> str:
             f"objects at least 25 px tall in {record['frames']} frames"
         )
     s = record["sweep"][f"{t:.2f}"]
+    beta = float(record.get("beta", 1.0))  # records made before the key: F1
+    score = f_beta(s["precision"], s["recall"], beta)
     return (
-        f"operating point: score >= {t:.2f} (best F1 {s['f1']:.2f}: precision "
+        f"operating point: score >= {t:.2f} (best {score_name(beta)} {score:.2f}: precision "
         f"{s['precision']:.2f}, recall {s['recall']:.2f} of {record['objects']} objects "
         f">= 25 px tall, {s['false_positives']:.2f} false boxes per frame over "
         f"{record['frames']} frames)"

@@ -231,4 +231,5 @@ def evaluator_for(detector: LoadedDetector, source, batch_size: int) -> Detectio
         filter_options=filter_options(config),
         use_ground_filter=config.anchors.filter,
         camera_height=config.model.gac.camera_height,
+        operating_point_beta=config.eval.get("operating_point_beta", 1.0),
     )

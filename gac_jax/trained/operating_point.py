@@ -2,8 +2,11 @@
 
 Every evaluation of a detector on a labelled split (the trainer's at the end of a run,
 ``evaluate.py``) writes ``operating_point.json`` beside its ``metrics.json``: the score
-threshold of best F1 on that split (:mod:`gac_jax.evaluation.operating_point`), with the
-step and the sha256 of the weights it was chosen for.
+threshold of best F-beta on that split (:mod:`gac_jax.evaluation.operating_point`; beta from
+``eval.operating_point_beta``, 1 where absent), with its sweep of precision and recall, the
+step and the sha256 of the weights it was chosen for. A record made with another beta than the
+run config's now (an override, or a record from before the key) is chosen again from its sweep
+with the config's beta: no evaluation has to run again.
 
 Where a run's config says ``eval.deploy_threshold = 'operating_point'`` (the default
 detector's), the deployment (``gac_jax.cli.predict``, the streams, :class:`Detector3D`, the
@@ -23,7 +26,7 @@ import os
 from pathlib import Path
 
 from gac_jax.data.files import atomic_write
-from gac_jax.evaluation.operating_point import describe
+from gac_jax.evaluation.operating_point import best_threshold, check_beta, describe, rule
 from gac_jax.trained.detector import LoadedDetector
 
 FILE = "operating_point.json"
@@ -69,8 +72,20 @@ def find_operating_point(workdir: str | os.PathLike, detector: LoadedDetector) -
             continue
         if record.get("weights_sha256") != detector.weights_sha256:
             continue
-        return {**record, "path": str(path)}
+        return {**rechosen(record, detector.config), "path": str(path)}
     return None
+
+
+def rechosen(record: dict, config) -> dict:
+    """``record`` with its threshold chosen from its sweep by ``config``'s
+    ``eval.operating_point_beta`` (``record`` itself where it was chosen with that beta)."""
+    beta = check_beta(config.eval.get("operating_point_beta", 1.0))
+    if float(record.get("beta", 1.0)) == beta or not record.get("sweep"):
+        return record
+    best = best_threshold(record["sweep"], beta)
+    if record["sweep"][best]["recall"] <= 0:
+        return record
+    return {**record, "threshold": float(best), "beta": beta, "rule": rule(beta)}
 
 
 def apply_deploy_threshold(

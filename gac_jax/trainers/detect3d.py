@@ -37,7 +37,7 @@ from gac_jax.detection.anchors import generate_anchors
 from gac_jax.detection.detection_loss import detection_loss
 from gac_jax.drawing.detection_pictures import save_evaluation_pictures
 from gac_jax.evaluation.ap_table import format_table
-from gac_jax.evaluation.operating_point import describe
+from gac_jax.evaluation.operating_point import check_beta, describe
 from gac_jax.trained.fingerprint import weights_sha256
 from gac_jax.trained.operating_point import write_operating_point
 from gac_jax.trainers.common import (
@@ -119,6 +119,7 @@ def _train_and_evaluate(config: ml_collections.ConfigDict, workdir: Path) -> dic
     compute_dtype(config)  # bad train.compute_dtype / profile_steps: one line, before any work
     profile_range(config.train.get("profile_steps"))
     train_transform(config)  # bad augmentation shares: one line, too
+    check_beta(config.eval.get("operating_point_beta", 1.0))  # and a bad operating point rule
     if is_main:
         workdir.mkdir(parents=True, exist_ok=True)
         save_config(config, workdir)
