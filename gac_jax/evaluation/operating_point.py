@@ -169,6 +169,13 @@ def best_threshold(sweep: dict[float, dict], beta: float = 1.0) -> float:
     return max(sorted(sweep, key=float), key=key)
 
 
+def chosen_threshold(sweep: dict, beta: float = 1.0) -> float | None:
+    """:func:`best_threshold` as a float, or None where no threshold finds any object (F-beta
+    0 everywhere: nothing to choose from)."""
+    best = best_threshold(sweep, beta)
+    return float(best) if sweep[best]["recall"] > 0 else None
+
+
 def threshold_grid(min_score: float) -> list[float]:
     """``min_score`` (the evaluation's threshold: nothing below it was kept), then the
     multiples of 0.05 above it up to 0.95."""
@@ -194,9 +201,8 @@ def operating_point(
     """
     beta = check_beta(beta)
     sweep = threshold_sweep(gts, dts, threshold_grid(min_score), classes)
-    best = best_threshold(sweep, beta)
     return {
-        "threshold": best if sweep[best]["recall"] > 0 else None,
+        "threshold": chosen_threshold(sweep, beta),
         "beta": beta,
         "rule": rule(beta),
         "classes": list(classes),

@@ -26,7 +26,7 @@ import os
 from pathlib import Path
 
 from gac_jax.data.files import atomic_write
-from gac_jax.evaluation.operating_point import best_threshold, check_beta, describe, rule
+from gac_jax.evaluation.operating_point import check_beta, chosen_threshold, describe, rule
 from gac_jax.trained.detector import LoadedDetector
 
 FILE = "operating_point.json"
@@ -82,10 +82,10 @@ def rechosen(record: dict, config) -> dict:
     beta = check_beta(config.eval.get("operating_point_beta", 1.0))
     if float(record.get("beta", 1.0)) == beta or not record.get("sweep"):
         return record
-    best = best_threshold(record["sweep"], beta)
-    if record["sweep"][best]["recall"] <= 0:
+    threshold = chosen_threshold(record["sweep"], beta)
+    if threshold is None:
         return record
-    return {**record, "threshold": float(best), "beta": beta, "rule": rule(beta)}
+    return {**record, "threshold": threshold, "beta": beta, "rule": rule(beta)}
 
 
 def apply_deploy_threshold(
